@@ -1,0 +1,1 @@
+"""The agent daemon: frame loop, tracking, mapping, keyframes."""

@@ -1,0 +1,1 @@
+"""What agents and server share: config, geometry, camera, datasets, evaluation."""

@@ -1,0 +1,82 @@
+"""Logging set-up and the one progress-bar factory every command uses."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterable, Iterator
+from typing import TypeVar
+
+from rich.logging import RichHandler
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
+
+T = TypeVar("T")
+
+_LEVELS = {0: logging.WARNING, 1: logging.INFO}
+
+
+def setup_logging(verbosity: int = 0, daemon: bool = False) -> None:
+    """Configure the root logger once.
+
+    verbosity 0 shows warnings, 1 info, 2 or more debug. Daemons log info by default and use
+    plain timestamped lines (they end up in files and journals); interactive commands use rich.
+    """
+    level = _LEVELS.get(verbosity, logging.DEBUG)
+    if daemon:
+        level = min(level, logging.INFO)
+        handler: logging.Handler = logging.StreamHandler()
+        handler.setFormatter(
+            logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s", "%H:%M:%S")
+        )
+    else:
+        handler = RichHandler(show_path=False, rich_tracebacks=False, markup=False)
+        handler.setFormatter(logging.Formatter("%(message)s"))
+    root = logging.getLogger()
+    for old in list(root.handlers):
+        root.removeHandler(old)
+    root.addHandler(handler)
+    root.setLevel(level)
+
+
+def make_progress(transient: bool = False, disable: bool = False) -> Progress:
+    """A rich progress display with the columns every cpslam bar shows.
+
+    `{task.fields[info]}` carries free text (fps, loss) updated through
+    `progress.update(task, info=...)`.
+    """
+    return Progress(
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+        TextColumn("{task.fields[info]}"),
+        transient=transient,
+        disable=disable,
+    )
+
+
+def progress(
+    iterable: Iterable[T] | None = None,
+    total: int | None = None,
+    desc: str = "",
+    disable: bool = False,
+) -> Iterator[T]:
+    """Iterate with a progress bar: `for x in progress(items, desc="render"): ...`."""
+    items = iterable if iterable is not None else range(total or 0)
+    if total is None:
+        try:
+            total = len(items)  # type: ignore[arg-type]
+        except TypeError:
+            total = None
+    with make_progress(disable=disable) as bar:
+        task = bar.add_task(desc, total=total, info="")
+        for item in items:
+            yield item
+            bar.advance(task)

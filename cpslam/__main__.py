@@ -1,0 +1,3 @@
+from cpslam.cli import main
+
+main()

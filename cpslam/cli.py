@@ -1,0 +1,51 @@
+"""The umbrella command line: `cpslam dataset …`, `cpslam eval …`.
+
+Each command lives next to the code it drives (for example `cpslam.common.synth.cli`) and
+is only registered here, so that this file stays a table of contents. Heavy libraries
+(torch, open3d) are imported inside the commands, which keeps `cpslam --help` fast.
+"""
+
+from __future__ import annotations
+
+import typer
+
+from cpslam import __version__
+from cpslam.common.datasets.cli import info as dataset_info
+from cpslam.common.eval.cli import ate as eval_ate
+from cpslam.common.logs import setup_logging
+from cpslam.common.synth.cli import synth as dataset_synth
+
+app = typer.Typer(
+    no_args_is_help=True,
+    add_completion=False,
+    help="cpslam — collaborative neural point-based RGB-D SLAM.",
+    context_settings={"help_option_names": ["-h", "--help"]},
+)
+dataset_app = typer.Typer(no_args_is_help=True, help="Inspect and generate RGB-D sequences.")
+eval_app = typer.Typer(no_args_is_help=True, help="Evaluate trajectories against ground truth.")
+app.add_typer(dataset_app, name="dataset")
+app.add_typer(eval_app, name="eval")
+
+dataset_app.command("info")(dataset_info)
+dataset_app.command("synth")(dataset_synth)
+eval_app.command("ate")(eval_ate)
+
+
+def _version(value: bool) -> None:
+    if value:
+        typer.echo(f"cpslam {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    verbose: int = typer.Option(0, "--verbose", "-v", count=True, help="More log output (-vv)."),
+    version: bool = typer.Option(
+        False, "--version", callback=_version, is_eager=True, help="Print the version."
+    ),
+) -> None:
+    setup_logging(verbose)
+
+
+def main() -> None:
+    app()

@@ -1,0 +1,1 @@
+"""The wire contract: messages, array codec, key expressions (no torch, no zenoh)."""

@@ -1,0 +1,1 @@
+"""The server daemon: loops, registration, fusion, federation, pose graph."""

@@ -1,0 +1,40 @@
+"""Shared test fixtures: where the real data lives, and markers that skip cleanly."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+SHARED_DATA = REPO_ROOT.parent / "shared" / "data"
+KITCHEN = SHARED_DATA / "7scenes-kitchen-0-299"
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    config.addinivalue_line("markers", "loopback: real processes over Zenoh TCP on 127.0.0.1")
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    skip_gpu = None
+    try:
+        import torch
+
+        if not torch.cuda.is_available():
+            skip_gpu = pytest.mark.skip(reason="needs CUDA; none available")
+    except ImportError:
+        skip_gpu = pytest.mark.skip(reason="needs torch with CUDA")
+    skip_data = pytest.mark.skip(reason=f"real data not found at {KITCHEN}")
+    for item in items:
+        if "gpu" in item.keywords and skip_gpu is not None:
+            item.add_marker(skip_gpu)
+        if "data" in item.keywords and not KITCHEN.is_dir():
+            item.add_marker(skip_data)
+
+
+@pytest.fixture(scope="session")
+def kitchen_path() -> Path:
+    """The first 300 frames of 7-Scenes red kitchen (skips when absent)."""
+    if not KITCHEN.is_dir():
+        pytest.skip(f"real data not found at {KITCHEN}")
+    return KITCHEN

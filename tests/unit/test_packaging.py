@@ -1,0 +1,57 @@
+"""The hand-written package list in pyproject.toml must cover every source folder."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from typer.testing import CliRunner
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+ROOT = Path(__file__).resolve().parents[2]
+TOP = {"cpslam": "cpslam", "agent": "cpslam.agent", "server": "cpslam.server",
+       "common": "cpslam.common", "protocol": "cpslam.protocol"}
+
+
+def _declared() -> set[str]:
+    data = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    return set(data["tool"]["setuptools"]["packages"])
+
+
+def test_every_package_folder_is_declared() -> None:
+    found = set()
+    for folder, name in TOP.items():
+        for init in (ROOT / folder).rglob("__init__.py"):
+            rel = init.parent.relative_to(ROOT / folder)
+            found.add(".".join([name, *rel.parts]))
+    missing = found - _declared()
+    assert not missing, f"add to [tool.setuptools] packages in pyproject.toml: {sorted(missing)}"
+
+
+def test_declared_packages_exist() -> None:
+    for name in _declared():
+        parts = name.split(".")
+        folder = ROOT / TOP[parts[1]] if len(parts) > 1 else ROOT / "cpslam"
+        folder = folder.joinpath(*parts[2:])
+        assert (folder / "__init__.py").is_file(), f"{name}: no {folder}/__init__.py"
+
+
+def test_cli_help_and_version() -> None:
+    from cpslam import __version__
+    from cpslam.cli import app
+
+    runner = CliRunner()
+    result = runner.invoke(app, ["--help"])
+    assert result.exit_code == 0
+    for command in ("dataset", "eval"):
+        assert command in result.output
+    result = runner.invoke(app, ["--version"])
+    assert result.exit_code == 0 and __version__ in result.output
+    for sub in (["dataset", "--help"], ["dataset", "synth", "--help"], ["dataset", "info", "--help"],
+                ["eval", "ate", "--help"]):
+        result = runner.invoke(app, sub)
+        assert result.exit_code == 0, (sub, result.output)
