@@ -1,0 +1,31 @@
+"""Trajectory evaluation: association, alignment and absolute trajectory error (ATE).
+
+Plots live in ``cpslam.common.eval.plot`` and the ``cpslam eval ate`` command in
+``cpslam.common.eval.cli``; both are left out here so importing this package stays light.
+"""
+
+from cpslam.common.eval.align import ALIGN_MODES, align, apply_alignment, umeyama
+from cpslam.common.eval.ate import (
+    DEFAULT_MAX_DT,
+    AteResult,
+    JointAteResult,
+    associate,
+    evaluate_ate,
+    joint_ate,
+)
+from cpslam.common.eval.source import load_trajectory, locate_trajectory
+
+__all__ = [
+    "ALIGN_MODES",
+    "DEFAULT_MAX_DT",
+    "AteResult",
+    "JointAteResult",
+    "align",
+    "apply_alignment",
+    "associate",
+    "evaluate_ate",
+    "joint_ate",
+    "load_trajectory",
+    "locate_trajectory",
+    "umeyama",
+]

@@ -1,0 +1,117 @@
+"""``cpslam eval ate``: score an estimated trajectory against ground truth."""
+
+from __future__ import annotations
+
+import json
+import logging
+from enum import Enum
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from cpslam.common.eval.ate import DEFAULT_MAX_DT, AteResult, evaluate_ate
+from cpslam.common.eval.source import load_trajectory, locate_trajectory
+from rich.console import Console
+from rich.table import Table
+
+logger = logging.getLogger(__name__)
+
+
+class AlignMode(str, Enum):
+    origin = "origin"
+    se3 = "se3"
+    sim3 = "sim3"
+    none = "none"
+
+
+def ate(
+    gt: Annotated[
+        Path,
+        typer.Option(
+            "--gt", help="Ground truth: TUM file, run folder or dataset folder.", show_default=False
+        ),
+    ],
+    est: Annotated[
+        Path,
+        typer.Option(
+            "--est",
+            help="Estimate: TUM file, or a run folder with one trajectory.tum "
+            "(at the top or in agent_*/).",
+            show_default=False,
+        ),
+    ],
+    align: Annotated[
+        AlignMode,
+        typer.Option(
+            "--align",
+            help="origin: first poses coincide (the paper's protocol); se3/sim3: "
+            "least-squares rigid/similarity fit; none: same frame already.",
+        ),
+    ] = AlignMode.origin,
+    max_dt: Annotated[
+        float,
+        typer.Option("--max-dt", min=0.0, help="Largest time difference of a pose pair [s]."),
+    ] = DEFAULT_MAX_DT,
+    json_out: Annotated[
+        Path | None, typer.Option("--json", help="Write the numbers to this JSON file.")
+    ] = None,
+    plot: Annotated[
+        Path | None, typer.Option("--plot", help="Write a PNG: top view and error over time.")
+    ] = None,
+) -> None:
+    """Absolute trajectory error (ATE) of an estimate against ground truth, in centimetres."""
+    try:
+        gt_file = locate_trajectory(gt)[1]
+        est_file = locate_trajectory(est)[1]
+        gt_traj = load_trajectory(gt)
+        est_traj = load_trajectory(est)
+        result = evaluate_ate(
+            gt_traj.stamps,
+            gt_traj.poses,
+            est_traj.stamps,
+            est_traj.poses,
+            align=align.value,
+            max_dt=max_dt,
+            gt_name=str(gt_file),
+            est_name=str(est_file),
+        )
+    except (OSError, ValueError) as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(code=2) from exc
+
+    _print_table(result, gt_file, est_file)
+    try:
+        if json_out is not None:
+            record = {"gt": str(gt_file), "est": str(est_file), **result.to_dict()}
+            json_out.parent.mkdir(parents=True, exist_ok=True)
+            json_out.write_text(json.dumps(record, indent=2) + "\n")
+            typer.echo(f"wrote {json_out}")
+        if plot is not None:
+            from cpslam.common.eval.plot import plot_ate
+
+            plot_ate(result, plot, title=f"{est_file} vs {gt_file}")
+            typer.echo(f"wrote {plot}")
+    except OSError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(code=2) from exc
+
+
+def _print_table(result: AteResult, gt_file: Path, est_file: Path) -> None:
+    table = Table(title="Absolute trajectory error", show_header=False, title_justify="left")
+    table.add_column("quantity", style="bold")
+    table.add_column("value")
+    table.add_row("ground truth", str(gt_file))
+    table.add_row("estimate", str(est_file))
+    table.add_row(
+        "matched pairs",
+        f"{result.n_pairs} of {result.n_est} (gt {result.n_gt}, max dt {result.max_dt:g} s)",
+    )
+    table.add_row("alignment", result.align)
+    if result.align == "sim3":
+        table.add_row("scale", f"{result.scale:.4f}")
+    table.add_row("RMSE", f"{100.0 * result.rmse:.2f} cm")
+    table.add_row("mean", f"{100.0 * result.mean:.2f} cm")
+    table.add_row("median", f"{100.0 * result.median:.2f} cm")
+    table.add_row("max", f"{100.0 * result.max:.2f} cm")
+    table.add_row("rotation RMSE", f"{result.rot_rmse_deg:.2f} deg")
+    Console().print(table)

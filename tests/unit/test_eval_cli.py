@@ -1,0 +1,121 @@
+"""`cpslam eval ate` command and the ATE plot."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import typer
+from cpslam.common.eval import evaluate_ate, joint_ate
+from cpslam.common.eval.cli import ate
+from cpslam.common.eval.plot import plot_ate, top_view_axes
+from cpslam.common.geometry import se3_exp
+from cpslam.common.trajectory import write_tum
+from typer.testing import CliRunner
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def make_pair(tmp_path: Path, n: int = 60, seed: int = 0) -> tuple[Path, Path]:
+    """gt.tum and a noisy est.tum (in another frame) written to tmp_path."""
+    rng = np.random.default_rng(seed)
+    stamps = np.arange(n) / 30.0
+    xi = np.zeros((n, 6))
+    xi[:, 0] = np.linspace(0.0, 2.0, n)  # moving along x and z: the top view is x-z
+    xi[:, 2] = np.sin(np.linspace(0.0, 3.0, n))
+    xi[:, 4] = np.linspace(0.0, 1.0, n)
+    gt = se3_exp(xi)
+    est = se3_exp(np.array([0.3, -0.2, 0.1, 0.0, 0.5, 0.0])) @ gt
+    est[:, :3, 3] += rng.normal(0.0, 0.01, (n, 3))
+    write_tum(tmp_path / "gt.tum", stamps, gt)
+    write_tum(tmp_path / "run" / "agent_0" / "trajectory.tum", stamps + 0.001, est)
+    return tmp_path / "gt.tum", tmp_path / "run"
+
+
+@pytest.fixture
+def app() -> typer.Typer:
+    app = typer.Typer()
+    app.command()(ate)
+
+    @app.command()
+    def other() -> None:  # a second command keeps `ate` a named subcommand, as in cpslam
+        pass
+
+    return app
+
+
+def test_cli_happy_path(tmp_path: Path, app: typer.Typer) -> None:
+    gt, run = make_pair(tmp_path)
+    out_json, out_png = tmp_path / "out" / "ate.json", tmp_path / "out" / "ate.png"
+    args = ["ate", "--gt", str(gt), "--est", str(run), "--align", "se3"]
+    result = CliRunner().invoke(app, [*args, "--json", str(out_json), "--plot", str(out_png)])
+    assert result.exit_code == 0, result.output
+    assert "RMSE" in result.output and "cm" in result.output and "se3" in result.output
+    record = json.loads(out_json.read_text())
+    assert record["n_pairs"] == 60 and record["align"] == "se3"
+    assert record["est"].endswith("agent_0/trajectory.tum")
+    assert 0.005 < record["rmse_m"] < 0.03
+    assert out_png.read_bytes()[:8] == PNG_MAGIC
+
+
+def test_cli_sim3_prints_scale(tmp_path: Path, app: typer.Typer) -> None:
+    gt, run = make_pair(tmp_path)
+    result = CliRunner().invoke(app, ["ate", "--gt", str(gt), "--est", str(run), "--align", "sim3"])
+    assert result.exit_code == 0, result.output
+    assert "scale" in result.output
+
+
+def test_cli_missing_file_exits_2(tmp_path: Path, app: typer.Typer) -> None:
+    gt, _ = make_pair(tmp_path)
+    missing = tmp_path / "no_such_estimate.tum"
+    result = CliRunner().invoke(app, ["ate", "--gt", str(gt), "--est", str(missing)])
+    assert result.exit_code == 2
+    assert "no_such_estimate.tum" in result.output
+
+
+def test_cli_no_matching_stamps_exits_2(tmp_path: Path, app: typer.Typer) -> None:
+    gt, run = make_pair(tmp_path)
+    result = CliRunner().invoke(app, ["ate", "--gt", str(gt), "--est", str(run), "--max-dt", "0"])
+    assert result.exit_code == 2
+    assert "gt.tum" in result.output and "trajectory.tum" in result.output
+
+
+def test_cli_bad_tum_line_exits_2(tmp_path: Path, app: typer.Typer) -> None:
+    gt, _ = make_pair(tmp_path)
+    bad = tmp_path / "bad.tum"
+    bad.write_text("0.0 1 2 3\n")
+    result = CliRunner().invoke(app, ["ate", "--gt", str(gt), "--est", str(bad)])
+    assert result.exit_code == 2
+    assert "bad.tum" in result.output
+
+
+def test_plot_single_and_joint(tmp_path: Path) -> None:
+    import matplotlib.image
+
+    stamps = np.arange(40) / 30.0
+    xi = np.zeros((40, 6))
+    xi[:, 1] = np.linspace(0.0, 1.0, 40)
+    xi[:, 2] = np.linspace(0.0, 3.0, 40)
+    gt = se3_exp(xi)
+    est = gt.copy()
+    est[:, :3, 3] += 0.01
+    result = evaluate_ate(stamps, gt, stamps, est, align="none")
+    path = plot_ate(result, tmp_path / "one.png", title="test")
+    image = matplotlib.image.imread(path)
+    assert image.ndim == 3 and image.shape[0] > 100 and image.shape[1] > 100
+
+    joint = joint_ate([((stamps, gt), (stamps, est)), ((stamps, gt), (stamps, est))])
+    path = plot_ate(joint.parts, tmp_path / "sub" / "joint.png", labels=["a", "b"])
+    assert path.read_bytes()[:8] == PNG_MAGIC
+    with pytest.raises(ValueError, match="labels"):
+        plot_ate(joint.parts, tmp_path / "x.png", labels=["a"])
+
+
+def test_top_view_axes_picks_largest_extent() -> None:
+    xyz = np.zeros((10, 3))
+    xyz[:, 0] = np.linspace(0, 1, 10)
+    xyz[:, 1] = np.linspace(0, 0.1, 10)
+    xyz[:, 2] = np.linspace(0, 5, 10)
+    assert top_view_axes(xyz) == (0, 2)
