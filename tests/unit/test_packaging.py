@@ -35,7 +35,7 @@ def test_every_package_folder_is_declared() -> None:
 def test_declared_packages_exist() -> None:
     for name in _declared():
         parts = name.split(".")
-        folder = ROOT / TOP[parts[1]] if len(parts) > 1 else ROOT / "cpslam"
+        folder = ROOT / parts[1] if len(parts) > 1 else ROOT / "cpslam"
         folder = folder.joinpath(*parts[2:])
         assert (folder / "__init__.py").is_file(), f"{name}: no {folder}/__init__.py"
 

@@ -1,0 +1,123 @@
+"""Sections of the collaborative back end: place recognition, loops, federation, pose graph,
+refinement."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+from pydantic import (
+    Field,
+    NonNegativeInt,
+    PositiveFloat,
+    PositiveInt,
+    model_validator,
+)
+
+from cpslam.common.config.base import Section
+
+__all__ = [
+    "FederationConfig",
+    "LoopConfig",
+    "PlaceRecognitionConfig",
+    "PoseGraphConfig",
+    "RefinementConfig",
+]
+
+
+class PlaceRecognitionConfig(Section):
+    """Global image descriptors for loop detection."""
+
+    backbone: Literal["efficientnet_lite0"] = "efficientnet_lite0"
+    """Image backbone producing the local feature map."""
+    aggregation: Literal["netvlad", "gem"] = "netvlad"
+    """Pooling of the feature map into one descriptor: NetVLAD (the paper) or GeM."""
+    clusters: PositiveInt = 32
+    """Number of NetVLAD clusters."""
+    gem_p: PositiveFloat = 3.0
+    """Exponent p of GeM pooling."""
+    image_size: int = Field(default=224, ge=32)
+    """Images are resized to image_size x image_size before the backbone."""
+    weights: Path | None = None
+    """Trained aggregation weights file supplied by the user; null = untrained/initialised."""
+
+
+class LoopConfig(Section):
+    """Loop detection, verification and relative pose estimation."""
+
+    lambda_fine: float = Field(default=0.9, ge=-1.0, le=1.0)
+    """Descriptor cosine similarity above which a pair is used for sub-map alignment."""
+    lambda_coarse: float = Field(default=0.8, ge=-1.0, le=1.0)
+    """Descriptor cosine similarity above which a pair adds a pose-graph loop edge."""
+    min_keyframe_gap: NonNegativeInt = 3
+    """Within one agent, keyframes fewer than this many keyframes apart are not loop candidates."""
+    max_candidates: PositiveInt = 3
+    """At most this many candidates per query keyframe are verified."""
+    coarse_method: Literal["icp", "none"] = "icp"
+    """Initial relative pose before rendering-based refinement: point-to-plane ICP or identity."""
+    icp_max_distance: PositiveFloat = 0.2
+    """Largest correspondence distance (m) in the coarse ICP."""
+    icp_voxel_size: PositiveFloat = 0.05
+    """Voxel size (m) the clouds are reduced to before the coarse ICP."""
+    register_iters: PositiveInt = 200
+    """Tracking steps refining a loop's relative pose against the other sub-map (our choice)."""
+    verify_max_residual: PositiveFloat = 0.05
+    """A loop is accepted when the mean depth residual after alignment is at most this (m)."""
+    verify_min_overlap: float = Field(default=0.3, ge=0.0, le=1.0)
+    """A loop is accepted when at least this fraction of pixels overlaps the other sub-map."""
+
+    @model_validator(mode="after")
+    def _check(self) -> LoopConfig:
+        if self.lambda_fine < self.lambda_coarse:
+            raise ValueError(
+                f"lambda_fine ({self.lambda_fine}) must be at least "
+                f"lambda_coarse ({self.lambda_coarse})"
+            )
+        return self
+
+
+class FederationConfig(Section):
+    """Federated averaging of the decoders of a group of agents."""
+
+    enabled: bool = True
+    """Average decoders across the agents of a group."""
+    round_every_mappings: PositiveInt = 5
+    """Start a federated round every this many mapping calls of an agent."""
+    round_timeout_s: PositiveFloat = 30.0
+    """A round closes with the weights that arrived within this time (s)."""
+    finetune_iters: NonNegativeInt = 100
+    """Steps fine-tuning the averaged decoders on all keyframes after a merge."""
+    weighting: Literal["samples", "uniform"] = "samples"
+    """Average weighted by each agent's sample count, or uniformly."""
+
+
+class PoseGraphConfig(Section):
+    """Pose-graph optimisation over sequential and loop edges."""
+
+    robust_kernel: Literal["cauchy", "huber", "gnc", "none"] = "cauchy"
+    """Robust loss on loop edges (gnc = graduated non-convexity)."""
+    kernel_scale: PositiveFloat = 1.0
+    """Scale of the robust kernel, in units of the whitened residual."""
+    seq_sigma_t: PositiveFloat = 0.01
+    """Translation standard deviation (m) of sequential edges."""
+    seq_sigma_r: PositiveFloat = 0.01
+    """Rotation standard deviation (rad) of sequential edges."""
+    loop_sigma_t: PositiveFloat = 0.05
+    """Translation standard deviation (m) of loop edges."""
+    loop_sigma_r: PositiveFloat = 0.05
+    """Rotation standard deviation (rad) of loop edges."""
+    max_iters: PositiveInt = 100
+    """Largest number of Levenberg-Marquardt iterations."""
+    rel_tol: PositiveFloat = 1e-5
+    """Stop when the relative error decrease falls below this."""
+    all_frames: bool = True
+    """Optimise every frame's pose (the paper) rather than keyframes only."""
+
+
+class RefinementConfig(Section):
+    """Map refinement after a pose-graph correction."""
+
+    finetune_iters: NonNegativeInt = 100
+    """Steps of the short map fine-tune after points moved with their keyframes."""
+    grid_filter: bool = True
+    """Grid filter the moved points before the fine-tune."""

@@ -1,0 +1,119 @@
+"""Sections of the running processes: the message bus and run-level settings."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Literal
+
+from pydantic import (
+    NonNegativeInt,
+    PositiveFloat,
+    PositiveInt,
+    field_validator,
+)
+
+from cpslam.common.config.base import Section
+
+__all__ = ["RunConfig", "TransportConfig"]
+
+
+_ENDPOINT = re.compile(
+    r"^(?:(?:tcp|udp|quic|tls|ws)/(?:\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.-]+):\d{1,5}"
+    r"|unixsock-stream/\S+)(?:[?#]\S*)?$"
+)
+
+
+class TransportConfig(Section):
+    """The message bus between agents and server (Eclipse Zenoh, or in-memory for tests)."""
+
+    backend: Literal["zenoh", "memory"] = "zenoh"
+    """Bus implementation: Zenoh, or the in-process bus (one process, tests and demos)."""
+    session: str = "default"
+    """Session name; every key expression lives under cpslam/{session}/."""
+    mode: Literal["router", "peer", "client"] | None = None
+    """Zenoh mode; null = the role's default (server: router, agent: client)."""
+    listen: list[str] = []
+    """Endpoints to listen on; empty = the role's default (server: tcp/0.0.0.0:7447)."""
+    connect: list[str] = []
+    """Endpoints to connect to; empty = the role's default (agent: tcp/127.0.0.1:7447)."""
+    multicast_scouting: bool = False
+    """Discover peers by UDP multicast (off: endpoints are explicit)."""
+    shared_memory: bool = False
+    """Let same-host Zenoh sessions exchange payloads through shared memory."""
+    lease_s: PositiveFloat = 3.0
+    """Zenoh lease (s): a silent peer is declared gone after this."""
+    queue_size: PositiveInt = 64
+    """Incoming messages buffered per subscription before the oldest are dropped."""
+    max_message_mb: PositiveFloat = 64.0
+    """Messages larger than this (MiB) are refused on send and dropped on receive."""
+    open_timeout_s: PositiveFloat = 5.0
+    """Time (s) allowed for opening a session and reaching the connect endpoints."""
+
+    @field_validator("session")
+    @classmethod
+    def _session_name(cls, value: str) -> str:
+        if not re.fullmatch(r"[A-Za-z0-9_.-]+", value):
+            raise ValueError(
+                f"session {value!r} must be a non-empty name of letters, digits, '_', '.', '-'"
+            )
+        return value
+
+    @field_validator("listen", "connect", mode="before")
+    @classmethod
+    def _split_endpoints(cls, value: object) -> object:
+        # Environment variables and --set give one string; accept "a,b" as a list.
+        if isinstance(value, str):
+            return [part.strip() for part in value.split(",") if part.strip()]
+        return value
+
+    @field_validator("listen", "connect")
+    @classmethod
+    def _endpoints(cls, value: list[str]) -> list[str]:
+        for endpoint in value:
+            if not _ENDPOINT.match(endpoint):
+                raise ValueError(
+                    f"endpoint {endpoint!r} should look like tcp/HOST:PORT "
+                    "(or udp/, quic/, tls/, ws/HOST:PORT, unixsock-stream/PATH)"
+                )
+            port = re.search(r":(\d+)(?:[?#]|$)", endpoint)
+            if port and int(port.group(1)) > 65535:
+                raise ValueError(f"endpoint {endpoint!r}: port must be at most 65535")
+        return value
+
+
+class RunConfig(Section):
+    """Process-level settings: output, device, seeds, logging."""
+
+    seed: NonNegativeInt = 0
+    """Seed of every random choice; a CPU run is reproducible."""
+    device: str = "auto"
+    """Compute device: auto, cpu, cuda or cuda:N."""
+    out: Path = Path("runs")
+    """Directory that holds run directories."""
+    name: str | None = None
+    """Run directory name under out; null = a timestamp."""
+    log_level: Literal["debug", "info", "warning", "error"] = "info"
+    """Least severe log level the daemons write."""
+    num_threads: PositiveInt | None = None
+    """Torch CPU threads; null = torch's default."""
+    deterministic: bool = True
+    """Ask torch for deterministic algorithms (slower on GPU)."""
+
+    @field_validator("device")
+    @classmethod
+    def _device(cls, value: str) -> str:
+        if not re.fullmatch(r"auto|cpu|cuda(?::\d+)?", value):
+            raise ValueError(f"device {value!r}: expected auto, cpu, cuda or cuda:N")
+        return value
+
+    @field_validator("name")
+    @classmethod
+    def _name(cls, value: str | None) -> str | None:
+        if value is not None and not re.fullmatch(r"[A-Za-z0-9_.-]+", value):
+            raise ValueError(
+                f"run name {value!r} must be one path component: letters, digits, '_', '.', '-'"
+            )
+        if value in (".", ".."):
+            raise ValueError(f"run name {value!r} is not a directory name")
+        return value
