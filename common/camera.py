@@ -1,0 +1,232 @@
+"""Pinhole camera intrinsics, back-projection, projection and RGB-D resizing.
+
+Axes are OpenCV's (x right, y down, z forward). Pixel ``(u, v)`` is column ``u``, row ``v``,
+and integer coordinates are pixel *centres* (OpenCV's convention), so the image spans
+``[-0.5, width - 0.5]`` in u. Depth is z-depth in metres (not ray length), 0 = invalid.
+
+The torch helpers import torch lazily so that the dataset side can use ``Intrinsics`` without
+paying for torch.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING, Any
+
+import cv2
+import numpy as np
+
+if TYPE_CHECKING:
+    import torch
+
+__all__ = ["Intrinsics", "backproject_torch", "pixel_rays_torch", "resize_rgbd", "scaled_size"]
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics: focal lengths and principal point in pixels, image size.
+
+    Raises:
+        ValueError: naming the field, for non-positive or non-finite focal lengths, a
+            non-finite principal point, or a non-positive / non-integer image size.
+    """
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+    def __post_init__(self) -> None:
+        for name in ("fx", "fy", "cx", "cy"):
+            value = getattr(self, name)
+            try:
+                value = float(value)
+            except (TypeError, ValueError):
+                raise ValueError(f"Intrinsics.{name}: expected a number, got {value!r}") from None
+            if not math.isfinite(value):
+                raise ValueError(f"Intrinsics.{name}: expected a finite number, got {value}")
+            if name in ("fx", "fy") and value <= 0.0:
+                raise ValueError(f"Intrinsics.{name}: focal length must be > 0, got {value}")
+            object.__setattr__(self, name, value)
+        for name in ("width", "height"):
+            value = getattr(self, name)
+            try:
+                whole = not isinstance(value, bool) and float(value).is_integer()
+            except (TypeError, ValueError):
+                whole = False
+            if not whole or int(float(value)) <= 0:
+                raise ValueError(f"Intrinsics.{name}: expected a positive integer, got {value!r}")
+            object.__setattr__(self, name, int(float(value)))
+
+    @property
+    def K(self) -> np.ndarray:
+        """The 3x3 float64 camera matrix."""
+        return np.array(
+            [[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]], dtype=np.float64
+        )
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """Image shape ``(height, width)`` as numpy orders it."""
+        return self.height, self.width
+
+    def scaled(self, factor: float) -> Intrinsics:
+        """Intrinsics of the image resized by ``factor`` (0.5 halves each side).
+
+        The new size is ``scaled_size(width, height, factor)`` (what ``resize_rgbd`` produces);
+        per-axis scales are the exact ratios new/old size. Because integer coordinates are pixel
+        centres, the principal point maps as ``c' = (c + 0.5) * s - 0.5``.
+        """
+        width, height = scaled_size(self.width, self.height, factor)
+        sx, sy = width / self.width, height / self.height
+        return Intrinsics(
+            fx=self.fx * sx,
+            fy=self.fy * sy,
+            cx=(self.cx + 0.5) * sx - 0.5,
+            cy=(self.cy + 0.5) * sy - 0.5,
+            width=width,
+            height=height,
+        )
+
+    def pixel_grid(self) -> tuple[np.ndarray, np.ndarray]:
+        """Pixel-centre coordinates ``u, v``, each float32 ``[H, W]`` (u = column, v = row)."""
+        v, u = np.meshgrid(
+            np.arange(self.height, dtype=np.float32),
+            np.arange(self.width, dtype=np.float32),
+            indexing="ij",
+        )
+        return u, v
+
+    def pixel_rays(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """Camera-frame ray directions ``[N, 3]`` with z = 1 for pixels ``u, v`` ``[N]``.
+
+        Because z = 1, the point at distance t along a ray has z-depth t.
+        """
+        u = np.asarray(u, dtype=np.float64).reshape(-1)
+        v = np.asarray(v, dtype=np.float64).reshape(-1)
+        if u.shape != v.shape:
+            raise ValueError(f"pixel_rays: u and v differ in size ({u.size} vs {v.size})")
+        return np.stack([(u - self.cx) / self.fx, (v - self.cy) / self.fy, np.ones_like(u)], -1)
+
+    def backproject(self, depth: np.ndarray) -> np.ndarray:
+        """Camera-frame points ``[H, W, 3]`` float32 from a depth image ``[H, W]`` (metres).
+
+        Pixels with invalid depth (0) give the point (0, 0, 0): mask with ``depth > 0``.
+        """
+        depth = np.asarray(depth)
+        if depth.shape != self.shape:
+            raise ValueError(
+                f"backproject: expected depth of shape {self.shape}, got {depth.shape}"
+            )
+        u, v = self.pixel_grid()
+        z = depth.astype(np.float32, copy=False)
+        x = (u - np.float32(self.cx)) * (z / np.float32(self.fx))
+        y = (v - np.float32(self.cy)) * (z / np.float32(self.fy))
+        return np.stack([x, y, z], axis=-1)
+
+    def project(self, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pixel coordinates ``uv [N, 2]`` and depths ``z [N]`` of camera-frame points ``[N, 3]``.
+
+        Points with z <= 0 (behind or on the camera plane) get ``uv = NaN``, so bounds checks
+        such as ``0 <= u < width`` reject them without a separate mask.
+        """
+        xyz = np.asarray(xyz, dtype=np.float64)
+        if xyz.ndim != 2 or xyz.shape[1] != 3:
+            raise ValueError(f"project: expected xyz of shape [N, 3], got {xyz.shape}")
+        z = xyz[:, 2]
+        front = z > 0.0
+        z_safe = np.where(front, z, 1.0)
+        uv = np.stack(
+            [self.fx * xyz[:, 0] / z_safe + self.cx, self.fy * xyz[:, 1] / z_safe + self.cy], -1
+        )
+        uv[~front] = np.nan
+        return uv, z.copy()
+
+    def to_dict(self) -> dict[str, float | int]:
+        """Plain dict with keys fx, fy, cx, cy, width, height (YAML/JSON friendly)."""
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> Intrinsics:
+        """Build from a mapping with keys fx, fy, cx, cy, width, height.
+
+        Other keys (a camera sidecar also holds depth_scale, fps) are ignored.
+        """
+        missing = [k for k in ("fx", "fy", "cx", "cy", "width", "height") if k not in d]
+        if missing:
+            raise ValueError(f"Intrinsics.from_dict: missing key(s) {', '.join(missing)}")
+        return cls(d["fx"], d["fy"], d["cx"], d["cy"], d["width"], d["height"])
+
+    @classmethod
+    def from_K(cls, K: np.ndarray, width: int, height: int) -> Intrinsics:
+        """Build from a 3x3 camera matrix (zero skew) and the image size."""
+        K = np.asarray(K, dtype=np.float64)
+        if K.shape != (3, 3):
+            raise ValueError(f"Intrinsics.from_K: expected K of shape (3, 3), got {K.shape}")
+        if abs(K[0, 1]) > 1e-9 or np.abs(K[2] - [0.0, 0.0, 1.0]).max() > 1e-9:
+            raise ValueError("Intrinsics.from_K: K must be [[fx,0,cx],[0,fy,cy],[0,0,1]]")
+        return cls(K[0, 0], K[1, 1], K[0, 2], K[1, 2], width, height)
+
+
+def scaled_size(width: int, height: int, factor: float) -> tuple[int, int]:
+    """Image size ``(width, height)`` after resizing by ``factor`` (rounded, at least 1)."""
+    if not math.isfinite(factor) or factor <= 0.0:
+        raise ValueError(f"resize factor must be a positive number, got {factor}")
+    return max(1, round(width * factor)), max(1, round(height * factor))
+
+
+def resize_rgbd(rgb: np.ndarray, depth: np.ndarray, factor: float) -> tuple[np.ndarray, np.ndarray]:
+    """Resize an RGB ``[H, W, 3]`` uint8 and depth ``[H, W]`` float32 pair by ``factor``.
+
+    Colour uses area averaging; depth uses nearest neighbour so no pixel mixes depths from
+    both sides of an edge (or an invalid 0 with a valid depth). Pair with
+    ``Intrinsics.scaled(factor)``.
+    """
+    if rgb.ndim != 3 or rgb.shape[2] != 3:
+        raise ValueError(f"resize_rgbd: expected rgb of shape [H, W, 3], got {rgb.shape}")
+    if depth.shape != rgb.shape[:2]:
+        raise ValueError(
+            f"resize_rgbd: depth shape {depth.shape} does not match rgb shape {rgb.shape[:2]}"
+        )
+    height, width = depth.shape
+    size = scaled_size(width, height, factor)
+    if size == (width, height):
+        return rgb.copy(), depth.copy()
+    rgb_out = cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
+    depth_out = cv2.resize(depth, size, interpolation=cv2.INTER_NEAREST)
+    return rgb_out, depth_out
+
+
+def backproject_torch(intr: Intrinsics, depth: torch.Tensor) -> torch.Tensor:
+    """Torch version of ``Intrinsics.backproject``: ``[H, W]`` depth -> ``[H, W, 3]`` points
+    on the depth's device and dtype (invalid depth gives (0, 0, 0))."""
+    import torch
+
+    if tuple(depth.shape) != intr.shape:
+        raise ValueError(
+            f"backproject_torch: expected depth of shape {intr.shape}, got {tuple(depth.shape)}"
+        )
+    opts = {"dtype": depth.dtype, "device": depth.device}
+    v, u = torch.meshgrid(
+        torch.arange(intr.height, **opts), torch.arange(intr.width, **opts), indexing="ij"
+    )
+    x = (u - intr.cx) * depth / intr.fx
+    y = (v - intr.cy) * depth / intr.fy
+    return torch.stack([x, y, depth], dim=-1)
+
+
+def pixel_rays_torch(intr: Intrinsics, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """Torch version of ``Intrinsics.pixel_rays``: ``u, v [N]`` -> directions ``[N, 3]``, z = 1,
+    in the dtype and on the device of ``u``."""
+    import torch
+
+    if u.shape != v.shape:
+        raise ValueError(f"pixel_rays_torch: u {tuple(u.shape)} and v {tuple(v.shape)} differ")
+    if not u.is_floating_point():
+        u = u.to(torch.get_default_dtype())
+    u = u.reshape(-1)
+    v = v.reshape(-1).to(u.dtype)
+    return torch.stack([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, torch.ones_like(u)], -1)
