@@ -1,0 +1,79 @@
+"""Command-line pieces shared by every command that takes a configuration.
+
+The option types below are used by `cpslam config show`, `cpslam-agent`, `cpslam-server`,
+`cpslam run` and `cpslam demo`, so the same flags mean the same thing everywhere.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+PresetOpt = Annotated[
+    str, typer.Option("--preset", "-p", help="Preset: paper (GPU), cpu (2-core CPU) or tiny (tests).")
+]
+ConfigOpt = Annotated[
+    Path | None,
+    typer.Option("--config", "-c", help="YAML file applied over the preset.", dir_okay=False),
+]
+SetOpt = Annotated[
+    list[str] | None,
+    typer.Option("--set", "-s", help="Override one key, e.g. --set tracking.iters=50 (repeatable)."),
+]
+DeviceOpt = Annotated[
+    str | None, typer.Option("--device", help="auto, cpu, cuda or cuda:N (overrides run.device).")
+]
+SeedOpt = Annotated[int | None, typer.Option("--seed", help="Random seed (overrides run.seed).")]
+
+
+def config_or_exit(
+    preset: str,
+    config_file: Path | None,
+    sets: list[str] | None,
+    device: str | None = None,
+    seed: int | None = None,
+):
+    """Load the effective configuration, or print the error and exit with status 2."""
+    from cpslam.common.config import ConfigError, config_from_cli
+
+    try:
+        return config_from_cli(preset, config_file, sets or [], device=device, seed=seed)
+    except ConfigError as err:
+        typer.echo(f"error: {err}", err=True)
+        raise typer.Exit(2) from None
+
+
+def show(
+    preset: PresetOpt = "cpu",
+    config_file: ConfigOpt = None,
+    sets: SetOpt = None,
+    device: DeviceOpt = None,
+    seed: SeedOpt = None,
+) -> None:
+    """Print the effective configuration as YAML (what a run would use).
+
+    Examples:
+
+      cpslam config show --preset paper
+
+      cpslam config show -p cpu --set tracking.iters=50 > my.yaml
+
+      cpslam config show -c my.yaml --set run.device=cuda
+    """
+    import yaml
+
+    from cpslam.common.config import config_to_dict
+
+    cfg = config_or_exit(preset, config_file, sets, device, seed)
+    typer.echo(yaml.safe_dump(config_to_dict(cfg), sort_keys=False), nl=False)
+
+
+def presets() -> None:
+    """List the presets and what each changes relative to the paper's defaults."""
+    from cpslam.common.config import available_presets, preset_text
+
+    for name in available_presets():
+        typer.echo(f"# --- {name} ---")
+        typer.echo(preset_text(name).rstrip() or "# (the defaults: the paper's values)")
