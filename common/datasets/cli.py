@@ -1,0 +1,130 @@
+"""`cpslam dataset info`: what a sequence folder holds, as text or JSON.
+
+The lead's umbrella CLI registers `info` as a command; heavy imports stay inside functions so
+that `cpslam --help` does not pay for them.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated, Any
+
+import typer
+
+if TYPE_CHECKING:
+    from cpslam.common.datasets.base import RGBDSequence
+
+
+def info(
+    path: Annotated[Path, typer.Argument(help="Sequence folder.", show_default=False)],
+    format: Annotated[
+        str | None,
+        typer.Option("--format", "-f", help="replica, tum, 7scenes or scannet (default: detect)."),
+    ] = None,
+    frames: Annotated[
+        str | None,
+        typer.Option("--frames", help="Frame selection START:STOP[:STEP], e.g. 0:300 or ::2."),
+    ] = None,
+    samples: Annotated[
+        int, typer.Option("--samples", min=1, help="Frames sampled for the depth statistics.")
+    ] = 5,
+    as_json: Annotated[bool, typer.Option("--json", help="Print JSON instead of text.")] = False,
+) -> None:
+    """Describe an RGB-D sequence: format, frames, resolution, intrinsics, depth, ground truth."""
+    from cpslam.common.datasets import DatasetError, open_sequence
+
+    try:
+        sequence = open_sequence(path, fmt=format, frames=frames)
+        summary = summarize(sequence, samples=samples)
+    except DatasetError as e:
+        typer.echo(f"error: {e}", err=True)
+        raise typer.Exit(code=2) from None
+    if as_json:
+        typer.echo(json.dumps(summary, indent=2))
+    else:
+        typer.echo(format_summary(summary))
+
+
+def summarize(sequence: RGBDSequence, samples: int = 5) -> dict[str, Any]:
+    """Facts about a sequence; depth statistics from `samples` evenly spaced frames."""
+    import numpy as np
+
+    n = len(sequence)
+    positions = np.unique(np.linspace(0, n - 1, min(samples, n)).round().astype(int))
+    valid_depth = []
+    pixels = 0
+    for p in positions:
+        depth = sequence[int(p)].depth
+        valid_depth.append(depth[depth > 0])
+        pixels += depth.size
+    valid = np.concatenate(valid_depth)
+    depth_stats: dict[str, Any] = {
+        "sampled_indices": [int(sequence.indices[p]) for p in positions],
+        "valid_fraction": float(valid.size / pixels),
+        "min_m": float(valid.min()) if valid.size else None,
+        "median_m": float(np.median(valid)) if valid.size else None,
+        "max_m": float(valid.max()) if valid.size else None,
+    }
+
+    gt: dict[str, Any] = {"present": sequence.has_gt, "frames": 0, "trajectory_length_m": None}
+    poses = sequence.gt_poses()
+    if poses is not None:
+        known = np.all(np.isfinite(poses.reshape(n, 16)), axis=1)
+        xyz = poses[known, :3, 3]
+        gt["frames"] = int(known.sum())
+        gt["trajectory_length_m"] = float(np.linalg.norm(np.diff(xyz, axis=0), axis=1).sum())
+
+    camera = sequence.intrinsics
+    return {
+        "format": sequence.format,
+        "path": str(sequence.path),
+        "frames": n,
+        "first_index": int(sequence.indices[0]),
+        "last_index": int(sequence.indices[-1]),
+        "duration_s": float(sequence.timestamps[-1] - sequence.timestamps[0]),
+        "width": camera.width,
+        "height": camera.height,
+        "intrinsics": {"fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy},
+        "fps": sequence.fps,
+        "depth_scale": sequence.depth_scale,
+        "depth": depth_stats,
+        "ground_truth": gt,
+    }
+
+
+def format_summary(summary: dict[str, Any]) -> str:
+    """The text form of `summarize`'s result."""
+    k = summary["intrinsics"]
+    d = summary["depth"]
+    g = summary["ground_truth"]
+    if d["min_m"] is None:
+        depth = f"no valid depth in {len(d['sampled_indices'])} sampled frames"
+    else:
+        depth = (
+            f"{d['min_m']:.3f} / {d['median_m']:.3f} / {d['max_m']:.3f} m (min / median / max "
+            f"over {len(d['sampled_indices'])} frames), {100 * d['valid_fraction']:.1f}% valid"
+        )
+    if g["present"]:
+        truth = (
+            f"yes, {g['frames']}/{summary['frames']} frames, trajectory "
+            f"{g['trajectory_length_m']:.2f} m (evaluation only)"
+        )
+    else:
+        truth = "no"
+    rows = [
+        ("format", summary["format"]),
+        ("path", summary["path"]),
+        (
+            "frames",
+            f"{summary['frames']} (indices {summary['first_index']}.."
+            f"{summary['last_index']}, {summary['duration_s']:.2f} s)",
+        ),
+        ("resolution", f"{summary['width']}x{summary['height']}"),
+        ("intrinsics", f"fx={k['fx']:g} fy={k['fy']:g} cx={k['cx']:g} cy={k['cy']:g}"),
+        ("fps", f"{summary['fps']:g}"),
+        ("depth scale", f"{summary['depth_scale']:g} units/m"),
+        ("depth", depth),
+        ("ground truth", truth),
+    ]
+    return "\n".join(f"{name:<13}{value}" for name, value in rows)
