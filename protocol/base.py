@@ -1,0 +1,115 @@
+"""Base classes and shared field types of the wire messages."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, ClassVar
+
+import numpy as np
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validator
+
+from cpslam.protocol.arrays import ArraySpec
+from cpslam.protocol.keys import check_id
+
+__all__ = [
+    "PROTOCOL_VERSION",
+    "Id",
+    "Seq",
+    "KfId",
+    "Count",
+    "Pose",
+    "Poses",
+    "Tensors",
+    "Message",
+    "WireModel",
+]
+
+PROTOCOL_VERSION = 1
+"""Version every message carries; a decoder rejects any other."""
+
+Id = Annotated[str, AfterValidator(lambda v: check_id(v, "id"))]
+"""Agent, group or session id: 1-64 chars of [A-Za-z0-9_-] (usable as a key chunk)."""
+Seq = Annotated[int, Field(ge=0, lt=2**63)]
+Count = Annotated[int, Field(ge=0, lt=2**63)]
+KfId = Annotated[int, Field(ge=0, lt=2**31)]  # keyframe ids also travel in int32 arrays
+
+Pose = Annotated[np.ndarray, ArraySpec("float64", (4, 4), rigid=True)]
+Poses = Annotated[np.ndarray, ArraySpec("float64", ("N", 4, 4), rigid=True)]
+
+MAX_TENSORS = 256
+MAX_TENSOR_NAME = 128
+TensorName = Annotated[str, Field(min_length=1, max_length=MAX_TENSOR_NAME, pattern=r"^[\w.\-]+$")]
+Tensors = Annotated[
+    dict[TensorName, Annotated[np.ndarray, ArraySpec("float32", None, finite=True)]],
+    Field(min_length=1, max_length=MAX_TENSORS),
+]
+"""Named float32 tensors (a torch state_dict flattened to numpy), at most 256 names."""
+
+
+class WireModel(BaseModel):
+    """Frozen, strict-keyed model whose equality compares arrays bit for bit."""
+
+    model_config = ConfigDict(
+        frozen=True,
+        extra="forbid",
+        allow_inf_nan=False,
+        use_attribute_docstrings=True,
+        arbitrary_types_allowed=True,
+    )
+
+    def __eq__(self, other: object) -> bool:
+        if type(self) is not type(other):
+            return NotImplemented
+        return all(
+            _same(getattr(self, name), getattr(other, name)) for name in type(self).model_fields
+        )
+
+    def __hash__(self) -> int:
+        return hash(tuple(_hashable(getattr(self, name)) for name in type(self).model_fields))
+
+
+class Message(WireModel):
+    """A top-level wire message: a `type` literal (in each subclass) and a `version`."""
+
+    max_bytes: ClassVar[int]
+    """Largest encoded size accepted for this message type (bytes)."""
+
+    version: int = PROTOCOL_VERSION
+    """Protocol version; must equal `PROTOCOL_VERSION`."""
+
+    @field_validator("version")
+    @classmethod
+    def _check_version(cls, value: int) -> int:
+        if value != PROTOCOL_VERSION:
+            raise ValueError(f"protocol version {value} is not {PROTOCOL_VERSION}")
+        return value
+
+    @classmethod
+    def type_name(cls) -> str:
+        """The wire name in the `type` field, e.g. ``"keyframe"``."""
+        return cls.model_fields["type"].default
+
+
+def _same(a: Any, b: Any) -> bool:
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        return (
+            isinstance(a, np.ndarray)
+            and isinstance(b, np.ndarray)
+            and a.dtype == b.dtype
+            and a.shape == b.shape
+            and a.tobytes() == b.tobytes()
+        )
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
+    if isinstance(a, list | tuple) and isinstance(b, list | tuple):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b, strict=True))
+    return a == b
+
+
+def _hashable(value: Any) -> Any:
+    if isinstance(value, np.ndarray):
+        return (value.dtype.str, value.shape, value.tobytes())
+    if isinstance(value, dict):
+        return tuple((k, _hashable(v)) for k, v in value.items())
+    if isinstance(value, list | tuple):
+        return tuple(_hashable(v) for v in value)
+    return value

@@ -1,0 +1,273 @@
+"""Zenoh key expressions: the only place that builds or parses them.
+
+Everything lives under ``cpslam/<session>/``::
+
+    agent/<agent>/keyframe            KeyframeMsg       agent -> server (put)
+    agent/<agent>/submap              SubmapDelta       agent -> server (put)
+    agent/<agent>/decoder             DecoderWeights    agent -> server (put)
+    agent/<agent>/frames              FramePoses        agent -> server (put)
+    agent/<agent>/image/<kf>          KeyframeImage     server -> agent (get; agent answers)
+    server/agent/<agent>/update       ServerUpdate      server -> agent (put)
+    server/agent/<agent>/ack          Ack               server -> agent (put)
+    server/group/<group>/decoder      GroupDecoder      server -> agents (put)
+    server/status                     Status            anyone -> server (get; server answers)
+    server/control                    Control           operator -> server -> agents (put)
+    alive/agent/<agent>               liveliness token of an agent
+    alive/server                      liveliness token of the server
+
+Ids (session, agent, group) are 1-64 characters of ``[A-Za-z0-9_-]``, so they never contain
+the key-expression specials ``/ * $ ? #``; keyframe ids are non-negative ints.
+"""
+
+from __future__ import annotations
+
+import operator
+import re
+
+from cpslam.protocol.errors import ProtocolError
+
+__all__ = [
+    "AGENT_TOPICS",
+    "SERVER_AGENT_TOPICS",
+    "ROOT",
+    "check_id",
+    "agent_keyframe",
+    "agent_submap",
+    "agent_decoder",
+    "agent_frames",
+    "agent_image",
+    "agent_image_queryable",
+    "agent_topic",
+    "all_agents",
+    "all_agents_topic",
+    "server_agent_update",
+    "server_agent_ack",
+    "server_agent_all",
+    "all_server_agent",
+    "server_group_decoder",
+    "all_group_decoders",
+    "server_status",
+    "server_control",
+    "alive_agent",
+    "alive_agents",
+    "alive_server",
+    "alive_all",
+    "parse_agent_key",
+    "parse_image_key",
+    "parse_server_agent_key",
+    "parse_group_decoder",
+    "parse_alive_agent",
+]
+
+ROOT = "cpslam"
+"""First chunk of every key expression."""
+
+AGENT_TOPICS: tuple[str, ...] = ("keyframe", "submap", "decoder", "frames")
+"""Topics an agent publishes on under ``agent/<agent>/``."""
+
+SERVER_AGENT_TOPICS: tuple[str, ...] = ("update", "ack")
+"""Topics the server publishes on under ``server/agent/<agent>/``."""
+
+_ID_RE = re.compile(r"[A-Za-z0-9_-]{1,64}")
+_KF_RE = re.compile(r"0|[1-9][0-9]{0,9}")
+_MAX_KF = 2**31 - 1
+
+
+def check_id(value: object, what: str = "id") -> str:
+    """Return `value` if it is a valid id (1-64 of ``[A-Za-z0-9_-]``), else raise ProtocolError."""
+    if not isinstance(value, str) or not _ID_RE.fullmatch(value):
+        raise ProtocolError(
+            f"{what} must be 1-64 characters of [A-Za-z0-9_-] (no '/', '*', '$', '?', '#'), "
+            f"got {value!r:.80}"
+        )
+    return value
+
+
+def _kf(kf_id: object) -> int:
+    try:
+        value = operator.index(kf_id)  # accepts numpy ints, refuses floats and strings
+    except TypeError:
+        raise ProtocolError(f"keyframe id must be an int, got {kf_id!r:.40}") from None
+    if isinstance(kf_id, bool) or not 0 <= value <= _MAX_KF:
+        raise ProtocolError(f"keyframe id must be an int in [0, {_MAX_KF}], got {kf_id!r:.40}")
+    return value
+
+
+def _base(session: str) -> str:
+    return f"{ROOT}/{check_id(session, 'session')}"
+
+
+# --- agent -> server -------------------------------------------------------------------------
+
+
+def agent_topic(session: str, agent_id: str, topic: str) -> str:
+    """``cpslam/<session>/agent/<agent>/<topic>`` for a topic in `AGENT_TOPICS`."""
+    if topic not in AGENT_TOPICS:
+        raise ProtocolError(f"agent topic must be one of {AGENT_TOPICS}, got {topic!r:.40}")
+    return f"{_base(session)}/agent/{check_id(agent_id, 'agent id')}/{topic}"
+
+
+def agent_keyframe(session: str, agent_id: str) -> str:
+    """Key on which an agent puts its `KeyframeMsg`s."""
+    return agent_topic(session, agent_id, "keyframe")
+
+
+def agent_submap(session: str, agent_id: str) -> str:
+    """Key on which an agent puts its `SubmapDelta`s."""
+    return agent_topic(session, agent_id, "submap")
+
+
+def agent_decoder(session: str, agent_id: str) -> str:
+    """Key on which an agent puts its `DecoderWeights`."""
+    return agent_topic(session, agent_id, "decoder")
+
+
+def agent_frames(session: str, agent_id: str) -> str:
+    """Key on which an agent puts its `FramePoses`."""
+    return agent_topic(session, agent_id, "frames")
+
+
+def all_agents_topic(session: str, topic: str) -> str:
+    """Wildcard over every agent for one topic, e.g. ``cpslam/s/agent/*/keyframe``."""
+    if topic not in AGENT_TOPICS:
+        raise ProtocolError(f"agent topic must be one of {AGENT_TOPICS}, got {topic!r:.40}")
+    return f"{_base(session)}/agent/*/{topic}"
+
+
+def all_agents(session: str) -> str:
+    """Wildcard over every agent and every topic: ``cpslam/<session>/agent/*/*``.
+
+    It does not match image keys (three chunks after the agent id), so a subscriber on it
+    sees only published messages.
+    """
+    return f"{_base(session)}/agent/*/*"
+
+
+def agent_image(session: str, agent_id: str, kf_id: int) -> str:
+    """Key the server queries for one keyframe's images: ``…/agent/<agent>/image/<kf>``."""
+    return f"{_base(session)}/agent/{check_id(agent_id, 'agent id')}/image/{_kf(kf_id)}"
+
+
+def agent_image_queryable(session: str, agent_id: str) -> str:
+    """Key expression an agent declares its image queryable on: ``…/agent/<agent>/image/*``."""
+    return f"{_base(session)}/agent/{check_id(agent_id, 'agent id')}/image/*"
+
+
+# --- server -> agents ------------------------------------------------------------------------
+
+
+def server_agent_update(session: str, agent_id: str) -> str:
+    """Key on which the server puts `ServerUpdate`s for one agent."""
+    return f"{_base(session)}/server/agent/{check_id(agent_id, 'agent id')}/update"
+
+
+def server_agent_ack(session: str, agent_id: str) -> str:
+    """Key on which the server puts `Ack`s for one agent."""
+    return f"{_base(session)}/server/agent/{check_id(agent_id, 'agent id')}/ack"
+
+
+def server_agent_all(session: str, agent_id: str) -> str:
+    """Wildcard over everything the server sends one agent: ``…/server/agent/<agent>/*``."""
+    return f"{_base(session)}/server/agent/{check_id(agent_id, 'agent id')}/*"
+
+
+def all_server_agent(session: str) -> str:
+    """Wildcard over everything the server sends any agent: ``…/server/agent/*/*``."""
+    return f"{_base(session)}/server/agent/*/*"
+
+
+def server_group_decoder(session: str, group_id: str) -> str:
+    """Key on which the server puts a group's shared `GroupDecoder`."""
+    return f"{_base(session)}/server/group/{check_id(group_id, 'group id')}/decoder"
+
+
+def all_group_decoders(session: str) -> str:
+    """Wildcard over every group's decoder: ``…/server/group/*/decoder``."""
+    return f"{_base(session)}/server/group/*/decoder"
+
+
+def server_status(session: str) -> str:
+    """Key of the server's status queryable (replies with a `Status`)."""
+    return f"{_base(session)}/server/status"
+
+
+def server_control(session: str) -> str:
+    """Key for `Control` messages (finalise, shutdown)."""
+    return f"{_base(session)}/server/control"
+
+
+# --- liveliness ------------------------------------------------------------------------------
+
+
+def alive_agent(session: str, agent_id: str) -> str:
+    """Liveliness token key of one agent."""
+    return f"{_base(session)}/alive/agent/{check_id(agent_id, 'agent id')}"
+
+
+def alive_agents(session: str) -> str:
+    """Wildcard over every agent's liveliness token."""
+    return f"{_base(session)}/alive/agent/*"
+
+
+def alive_server(session: str) -> str:
+    """Liveliness token key of the server."""
+    return f"{_base(session)}/alive/server"
+
+
+def alive_all(session: str) -> str:
+    """Wildcard over every liveliness token of the session (agents and server)."""
+    return f"{_base(session)}/alive/**"
+
+
+# --- parsing ---------------------------------------------------------------------------------
+
+
+def _chunks(session: str, key: object, what: str) -> list[str]:
+    if not isinstance(key, str):
+        raise ProtocolError(f"{what}: key must be a str, got {type(key).__name__}")
+    prefix = _base(session) + "/"
+    if not key.startswith(prefix):
+        raise ProtocolError(f"{what}: key {key!r:.120} is not under {prefix!r}")
+    return key[len(prefix) :].split("/")
+
+
+def parse_agent_key(session: str, key: str) -> tuple[str, str]:
+    """(agent id, topic) from ``cpslam/<session>/agent/<agent>/<topic>``."""
+    parts = _chunks(session, key, "agent key")
+    if len(parts) != 3 or parts[0] != "agent" or parts[2] not in AGENT_TOPICS:
+        raise ProtocolError(f"agent key: expected agent/<id>/<topic>, got {key!r:.120}")
+    return check_id(parts[1], "agent id"), parts[2]
+
+
+def parse_image_key(session: str, key: str) -> tuple[str, int]:
+    """(agent id, keyframe id) from ``cpslam/<session>/agent/<agent>/image/<kf>``."""
+    parts = _chunks(session, key, "image key")
+    if len(parts) != 4 or parts[0] != "agent" or parts[2] != "image":
+        raise ProtocolError(f"image key: expected agent/<id>/image/<kf>, got {key!r:.120}")
+    if not _KF_RE.fullmatch(parts[3]) or int(parts[3]) > _MAX_KF:
+        raise ProtocolError(f"image key: keyframe id must be an int in [0, {_MAX_KF}]")
+    return check_id(parts[1], "agent id"), int(parts[3])
+
+
+def parse_server_agent_key(session: str, key: str) -> tuple[str, str]:
+    """(agent id, topic) from ``cpslam/<session>/server/agent/<agent>/<topic>``."""
+    parts = _chunks(session, key, "server key")
+    if len(parts) != 4 or parts[:2] != ["server", "agent"] or parts[3] not in SERVER_AGENT_TOPICS:
+        raise ProtocolError(f"server key: expected server/agent/<id>/<topic>, got {key!r:.120}")
+    return check_id(parts[2], "agent id"), parts[3]
+
+
+def parse_group_decoder(session: str, key: str) -> str:
+    """Group id from ``cpslam/<session>/server/group/<group>/decoder``."""
+    parts = _chunks(session, key, "group key")
+    if len(parts) != 4 or parts[:2] != ["server", "group"] or parts[3] != "decoder":
+        raise ProtocolError(f"group key: expected server/group/<id>/decoder, got {key!r:.120}")
+    return check_id(parts[2], "group id")
+
+
+def parse_alive_agent(session: str, key: str) -> str:
+    """Agent id from a liveliness key ``cpslam/<session>/alive/agent/<agent>``."""
+    parts = _chunks(session, key, "liveliness key")
+    if len(parts) != 3 or parts[:2] != ["alive", "agent"]:
+        raise ProtocolError(f"liveliness key: expected alive/agent/<id>, got {key!r:.120}")
+    return check_id(parts[2], "agent id")

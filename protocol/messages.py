@@ -1,0 +1,334 @@
+"""Messages an agent sends: keyframes, sub-map deltas, decoder weights, frame poses, images.
+
+Every array field names its dtype and shape in its `Annotated` type (see `ArraySpec`);
+every field's docstring gives units and frames and is what docs/protocol.md documents.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from pydantic import Field, model_serializer, model_validator
+from pydantic_core import core_schema
+
+from cpslam.protocol.arrays import ArraySpec
+from cpslam.protocol.base import Count, Id, KfId, Message, Pose, Poses, Seq, Tensors
+from cpslam.protocol.images import image_from_wire, image_to_wire
+
+__all__ = [
+    "KeyframeMsg",
+    "SubmapDelta",
+    "DecoderWeights",
+    "FramePoses",
+    "KeyframeImageRequest",
+    "KeyframeImage",
+    "check_points",
+]
+
+MB = 1 << 20
+MAX_DESCRIPTOR = 65536
+MAX_FEATURE_DIM = 1024
+MAX_IMAGE_SIDE = 4096
+
+Ids = Annotated[np.ndarray, ArraySpec("int64", ("N",))]
+KfIds = Annotated[np.ndarray, ArraySpec("int32", ("N",))]
+Xyz = Annotated[np.ndarray, ArraySpec("float32", ("N", 3), finite=True)]
+Features = Annotated[np.ndarray, ArraySpec("float16", ("N", "F"), finite=True)]
+Colors = Annotated[np.ndarray, ArraySpec("uint8", ("N", 3))]
+RemovedIds = Annotated[np.ndarray, ArraySpec("int64", ("M",))]
+
+
+class KeyframeMsg(Message):
+    """A new keyframe: pose, global image descriptor and link to the previous keyframe."""
+
+    max_bytes = 1 * MB
+    type: Literal["keyframe"] = "keyframe"
+    agent_id: Id
+    """Sending agent."""
+    seq: Seq
+    """Agent's message sequence number (one counter for all its agent -> server messages)."""
+    kf_id: KfId
+    """Keyframe id, unique per agent, increasing."""
+    frame_index: Count
+    """Index of the keyframe's frame in the agent's RGB-D stream."""
+    stamp: float
+    """Timestamp of the frame (s, the dataset's clock)."""
+    world_epoch: Count = 0
+    """Epoch of the last `ServerUpdate` the agent applied; 0 = its own world (first camera)."""
+    T_world_cam: Pose
+    """Camera-to-world pose in the agent's current world frame (float64 [4, 4], m)."""
+    T_prev_kf_kf: Pose | None = None
+    """Pose of this keyframe in the previous keyframe's camera frame; None for the first."""
+    descriptor: Annotated[np.ndarray, ArraySpec("float32", ("D",), finite=True)]
+    """Global image descriptor, unit L2 norm (float32 [D], 1 <= D <= 65536)."""
+    n_points: Count = 0
+    """Number of map points anchored to this keyframe when it was published."""
+
+    @model_validator(mode="after")
+    def _check(self) -> KeyframeMsg:
+        d = self.descriptor.shape[0]
+        if not 1 <= d <= MAX_DESCRIPTOR:
+            raise ValueError(f"descriptor: length must be in [1, {MAX_DESCRIPTOR}], got {d}")
+        norm = float(np.linalg.norm(self.descriptor.astype(np.float64)))
+        if abs(norm - 1.0) > 1e-3:
+            raise ValueError(f"descriptor: must have unit L2 norm, got {norm:.6g}")
+        return self
+
+
+def check_points(
+    point_ids: np.ndarray,
+    anchor_kf_ids: np.ndarray,
+    xyz_local: np.ndarray,
+    features: np.ndarray,
+    colors: np.ndarray,
+    removed_ids: np.ndarray,
+) -> None:
+    """Cross-field checks of a point set; raises ValueError naming the field."""
+    n = point_ids.shape[0]
+    for name, array in (
+        ("anchor_kf_ids", anchor_kf_ids),
+        ("xyz_local", xyz_local),
+        ("features", features),
+        ("colors", colors),
+    ):
+        if array.shape[0] != n:
+            raise ValueError(f"{name}: has {array.shape[0]} rows, point_ids has {n}")
+    if features.shape[1] > MAX_FEATURE_DIM:
+        raise ValueError(f"features: F must be <= {MAX_FEATURE_DIM}, got {features.shape[1]}")
+    for name, ids in (
+        ("point_ids", point_ids),
+        ("removed_ids", removed_ids),
+        ("anchor_kf_ids", anchor_kf_ids),
+    ):
+        if ids.size and ids.min() < 0:
+            raise ValueError(f"{name}: ids must be >= 0")
+    # sort-based: numpy's hash-based unique is several times slower on 1e5+ ids
+    ordered = np.sort(point_ids)
+    if (ordered[1:] == ordered[:-1]).any():
+        raise ValueError("point_ids: ids must be unique")
+    if removed_ids.size and n:
+        pos = np.minimum(np.searchsorted(ordered, removed_ids), n - 1)
+        if (ordered[pos] == removed_ids).any():
+            raise ValueError("removed_ids: an id cannot be both updated and removed")
+
+
+class SubmapDelta(Message):
+    """New or changed map points of one agent, and removed ones.
+
+    A point is identified by (agent_id, point id); a later delta carrying the same id replaces
+    it. Positions are local to the anchor keyframe, so a keyframe pose correction moves its
+    points without resending them.
+    """
+
+    max_bytes = 64 * MB
+    type: Literal["submap_delta"] = "submap_delta"
+    agent_id: Id
+    """Sending agent."""
+    seq: Seq
+    """Agent's message sequence number."""
+    point_ids: Ids
+    """Agent-unique point ids, >= 0, no repeats (int64 [N])."""
+    anchor_kf_ids: KfIds
+    """Keyframe each point is anchored to (int32 [N])."""
+    xyz_local: Xyz
+    """Point positions in the anchor keyframe's camera frame (float32 [N, 3], m)."""
+    features: Features
+    """Learned point features (float16 [N, F], F <= 1024)."""
+    colors: Colors
+    """Point colours, RGB (uint8 [N, 3])."""
+    removed_ids: RemovedIds
+    """Ids of points the agent deleted (int64 [M]); disjoint from point_ids."""
+
+    @model_validator(mode="after")
+    def _check(self) -> SubmapDelta:
+        check_points(
+            self.point_ids,
+            self.anchor_kf_ids,
+            self.xyz_local,
+            self.features,
+            self.colors,
+            self.removed_ids,
+        )
+        return self
+
+
+class DecoderWeights(Message):
+    """An agent's local decoder weights for one federated round."""
+
+    max_bytes = 16 * MB
+    type: Literal["decoder_weights"] = "decoder_weights"
+    agent_id: Id
+    """Sending agent."""
+    seq: Seq
+    """Agent's message sequence number."""
+    group_id: Id
+    """Group the agent belongs to (its own id until merged)."""
+    round: Count
+    """Federated round these weights answer (0 before any shared decoder arrived)."""
+    n_samples: Count
+    """Number of training rays behind these weights (the averaging weight)."""
+    tensors: Tensors
+    """Parameters by name (torch state_dict keys), each float32 of any shape."""
+
+
+class FramePoses(Message):
+    """Poses of ordinary frames relative to their keyframes (a batch)."""
+
+    max_bytes = 4 * MB
+    type: Literal["frame_poses"] = "frame_poses"
+    agent_id: Id
+    """Sending agent."""
+    seq: Seq
+    """Agent's message sequence number."""
+    frame_indices: Annotated[np.ndarray, ArraySpec("int64", ("N",))]
+    """Indices of the frames in the agent's stream (int64 [N], >= 0)."""
+    stamps: Annotated[np.ndarray, ArraySpec("float64", ("N",), finite=True)]
+    """Frame timestamps (float64 [N], s)."""
+    kf_ids: KfIds
+    """Keyframe each frame is expressed against (int32 [N], >= 0)."""
+    T_kf_frame: Poses
+    """Frame camera pose in its keyframe's camera frame (float64 [N, 4, 4], m)."""
+
+    @model_validator(mode="after")
+    def _check(self) -> FramePoses:
+        n = self.frame_indices.shape[0]
+        for name in ("stamps", "kf_ids", "T_kf_frame"):
+            if getattr(self, name).shape[0] != n:
+                raise ValueError(f"{name}: has {getattr(self, name).shape[0]} rows, expected {n}")
+        if n and (self.frame_indices.min() < 0 or self.kf_ids.min() < 0):
+            raise ValueError("frame_indices/kf_ids: must be >= 0")
+        return self
+
+
+class KeyframeImageRequest(Message):
+    """The server's query for a keyframe's images (payload of a get on the image key)."""
+
+    max_bytes = 4096
+    type: Literal["keyframe_image_request"] = "keyframe_image_request"
+    agent_id: Id
+    """Agent that owns the keyframe."""
+    kf_id: KfId
+    """Keyframe wanted."""
+    want_rgb: bool = True
+    """Send the colour image."""
+    want_depth: bool = True
+    """Send the depth image."""
+
+    @model_validator(mode="after")
+    def _check(self) -> KeyframeImageRequest:
+        if not (self.want_rgb or self.want_depth):
+            raise ValueError("want_rgb/want_depth: at least one must be true")
+        return self
+
+
+class _Image:
+    """Annotation for an image field: decoded from {"codec", "data"} with the declared size."""
+
+    def __init__(self, kind: Literal["rgb", "depth"]) -> None:
+        self.kind = kind
+        self.spec = (
+            ArraySpec("uint8", ("H", "W", 3)) if kind == "rgb" else ArraySpec("uint16", ("H", "W"))
+        )
+
+    def __get_pydantic_core_schema__(self, source: Any, handler: Any) -> core_schema.CoreSchema:
+        return core_schema.with_info_plain_validator_function(self.validate)
+
+    def validate(self, value: Any, info: core_schema.ValidationInfo) -> np.ndarray:
+        if isinstance(value, dict) and "codec" in value:
+            if "width" not in info.data or "height" not in info.data:
+                raise ValueError("cannot check the image without a valid width and height")
+            declared = info.data.get("rgb_codec")
+            if self.kind == "rgb" and value["codec"] != declared:
+                raise ValueError(
+                    f"codec {value['codec']!r:.20} differs from rgb_codec {declared!r}"
+                )
+            return image_from_wire(value, self.kind, info.data["width"], info.data["height"])
+        if isinstance(value, dict):
+            raise ValueError("expected an image map with keys codec/data")
+        return self.spec.validate(value)
+
+
+class KeyframeImage(Message):
+    """A keyframe's colour and/or depth image with its intrinsics (reply to the request).
+
+    Colour is RGB in memory and PNG (lossless) or JPEG on the wire; depth is uint16 in units
+    of 1/depth_scale metres (0 = invalid) and always PNG. `from_metres` and `depth_metres`
+    convert to and from float32 metres.
+    """
+
+    max_bytes = 8 * MB
+    type: Literal["keyframe_image"] = "keyframe_image"
+    agent_id: Id
+    """Agent that owns the keyframe."""
+    kf_id: KfId
+    """Keyframe id."""
+    fx: float = Field(gt=0)
+    """Focal length along x (pixels)."""
+    fy: float = Field(gt=0)
+    """Focal length along y (pixels)."""
+    cx: float
+    """Principal point x (pixels)."""
+    cy: float
+    """Principal point y (pixels)."""
+    width: int = Field(ge=1, le=MAX_IMAGE_SIDE)
+    """Image width W (pixels)."""
+    height: int = Field(ge=1, le=MAX_IMAGE_SIDE)
+    """Image height H (pixels)."""
+    depth_scale: float = Field(default=1000.0, gt=0)
+    """Depth units per metre (1000 = millimetres)."""
+    rgb_codec: Literal["png", "jpeg"] = "jpeg"
+    """How `rgb` is compressed on the wire."""
+    jpeg_quality: int = Field(default=90, ge=1, le=100)
+    """JPEG quality used when rgb_codec is jpeg."""
+    rgb: Annotated[np.ndarray, _Image("rgb")] | None = None
+    """Colour image, RGB (uint8 [H, W, 3]); None when not requested."""
+    depth: Annotated[np.ndarray, _Image("depth")] | None = None
+    """Depth image in 1/depth_scale metres, 0 = invalid (uint16 [H, W]); None when not requested."""
+
+    @model_validator(mode="after")
+    def _check(self) -> KeyframeImage:
+        if self.rgb is None and self.depth is None:
+            raise ValueError("rgb/depth: at least one image is required")
+        for name, image in (("rgb", self.rgb), ("depth", self.depth)):
+            if image is not None and image.shape[:2] != (self.height, self.width):
+                raise ValueError(
+                    f"{name}: shape {list(image.shape)} does not match height x width "
+                    f"{self.height} x {self.width}"
+                )
+        return self
+
+    @model_serializer(mode="wrap")
+    def _serialize(self, handler: Any) -> dict[str, Any]:
+        wire = handler(self)
+        if self.rgb is not None:
+            wire["rgb"] = image_to_wire(self.rgb, "rgb", self.rgb_codec, self.jpeg_quality)
+        if self.depth is not None:
+            wire["depth"] = image_to_wire(self.depth, "depth")
+        return wire
+
+    @classmethod
+    def from_metres(
+        cls,
+        depth_m: np.ndarray | None,
+        depth_scale: float = 1000.0,
+        **fields: Any,
+    ) -> KeyframeImage:
+        """Build from float32 metric depth (0 or non-finite = invalid); other fields as kwargs.
+
+        Depths beyond the uint16 range (65535 / depth_scale m) become 0 (invalid) rather
+        than being clipped to a wrong value.
+        """
+        depth = None
+        if depth_m is not None:
+            scaled = np.nan_to_num(np.asarray(depth_m, np.float64) * depth_scale, nan=0.0)
+            scaled = np.rint(scaled)
+            scaled[(scaled < 0) | (scaled > np.iinfo(np.uint16).max)] = 0
+            depth = scaled.astype(np.uint16)
+        return cls(depth=depth, depth_scale=depth_scale, **fields)
+
+    def depth_metres(self) -> np.ndarray | None:
+        """Depth as float32 metres [H, W] (0 = invalid), or None if absent."""
+        if self.depth is None:
+            return None
+        return (self.depth.astype(np.float64) / self.depth_scale).astype(np.float32)

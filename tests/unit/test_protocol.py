@@ -1,0 +1,399 @@
+"""Wire protocol: round trips, validation of every field kind, size caps, typed errors."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import msgpack
+import numpy as np
+import pytest
+from pydantic import ValidationError
+
+from cpslam import protocol as P
+from cpslam.protocol.samples import random_poses, sample, samples
+
+ALL = samples(seed=0)
+
+
+def _wire(msg: P.Message) -> dict:
+    return msgpack.unpackb(P.encode(msg), raw=False)
+
+
+def _pack(obj: dict) -> bytes:
+    return msgpack.packb(obj, use_bin_type=True)
+
+
+def _fields(msg: P.Message) -> dict:
+    """Constructor keyword arguments that rebuild `msg`."""
+    return {k: getattr(msg, k) for k in type(msg).model_fields if k not in ("type", "version")}
+
+
+def _unit(d: int, seed: int = 0) -> np.ndarray:
+    v = np.random.default_rng(seed).standard_normal(d).astype(np.float32)
+    return v / np.linalg.norm(v)
+
+
+# --- round trips -----------------------------------------------------------------------------
+
+
+def test_samples_cover_every_message_type():
+    assert sorted(m.type_name() for m in ALL) == sorted(P.MESSAGE_TYPES)
+
+
+@pytest.mark.parametrize("msg", ALL, ids=lambda m: m.type_name())
+def test_round_trip_every_type(msg):
+    data = P.encode(msg)
+    back = P.decode(data, expected=type(msg))
+    assert type(back) is type(msg)
+    assert back == msg
+    assert hash(back) == hash(msg)
+    assert P.encoded_size(msg) == len(data) <= P.max_bytes(msg.type_name())
+    wire = msgpack.unpackb(data, raw=False)
+    assert list(wire)[:2] == ["type", "version"]
+    assert wire["version"] == P.PROTOCOL_VERSION == 1
+
+
+def test_decoded_arrays_are_writable_native_copies():
+    msg = sample("submap_delta", n_points=10)
+    back = P.decode(P.encode(msg))
+    assert back.xyz_local.flags.writeable and back.xyz_local.dtype == np.float32
+    back.xyz_local[0, 0] = 123.0  # must not touch the message it came from
+    assert msg.xyz_local[0, 0] != 123.0
+
+
+def test_round_trip_20_mb_submap_delta():
+    msg = sample("submap_delta", seed=1, n_points=220_000, feature_dim=32)
+    data = P.encode(msg)
+    assert len(data) > 20_000_000
+    back = P.decode(data, expected=P.SubmapDelta)
+    assert back == msg
+    assert back.features.dtype == np.float16 and back.features.shape == (220_000, 32)
+
+
+def test_equality_is_bitwise_on_arrays():
+    msg = sample("frame_poses", n_frames=3)
+    other = msg.model_copy(update={"stamps": msg.stamps + 1e-9})
+    assert msg != other
+    assert msg != sample("ack")
+
+
+def test_messages_are_frozen():
+    msg = sample("ack")
+    with pytest.raises(ValidationError):
+        msg.seq = 5
+
+
+def test_every_field_has_a_docstring():
+    models = [*P.MESSAGE_TYPES.values(), P.ForeignPoints]
+    for cls in models:
+        for name, field in cls.model_fields.items():
+            if name in ("type",):
+                continue
+            assert field.description, f"{cls.__name__}.{name} has no docstring"
+
+
+# --- decode errors ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "payload, needle",
+    [
+        (b"", "empty"),
+        (b"\x93\x01\x02\x03", "not a msgpack map"),
+        (_pack({"version": 1, "agent_id": "a", "seq": 1}), "no 'type'"),
+        (_pack({"type": "ack", "agent_id": "a", "seq": 1}), "no 'version'"),
+        (_pack({"type": "nope", "version": 1}), "unknown message type"),
+        (_pack({"type": 3, "version": 1}), "'type' must be a str"),
+        (_pack({"type": "ack", "version": "1"}), "'version' must be an int"),
+        (_pack({"type": "ack", "version": 1, "agent_id": "a", "seq": 1}) + b"\x00", "after"),
+        (_pack({"type": "ack", "version": 1, "agent_id": "a", "seq": 1})[:-1], "truncated"),
+        (_pack({"type": "ack", "version": 1, 5: "x"}), "keys must be str"),
+    ],
+)
+def test_structural_errors(payload, needle):
+    with pytest.raises(P.ProtocolError, match=needle):
+        P.decode(payload)
+
+
+def test_wrong_version_is_named():
+    wire = _wire(sample("keyframe"))
+    wire["version"] = 2
+    with pytest.raises(P.ProtocolError, match="version 2.*speaks version 1") as info:
+        P.decode(_pack(wire))
+    assert info.value.msg_type == "keyframe"
+
+
+def test_wrong_expected_type():
+    with pytest.raises(P.ProtocolError, match="expected a 'keyframe' message, got 'ack'"):
+        P.decode(P.encode(sample("ack")), expected=P.KeyframeMsg)
+    got = P.decode(P.encode(sample("ack")), expected=(P.KeyframeMsg, P.Ack))
+    assert isinstance(got, P.Ack)
+
+
+def test_duplicate_keys_are_refused():
+    body = b"\x84" + b"".join(
+        msgpack.packb(x) for x in ("type", "ack", "version", 1, "seq", 1, "seq", 2)
+    )
+    with pytest.raises(P.ProtocolError, match="duplicate key 'seq'"):
+        P.decode(body)
+
+
+def test_ext_types_are_refused():
+    wire = {"type": "ack", "version": 1, "agent_id": msgpack.ExtType(5, b"x"), "seq": 1}
+    with pytest.raises(P.ProtocolError, match="extension"):
+        P.decode(_pack(wire))
+
+
+def test_non_bytes_input():
+    with pytest.raises(P.ProtocolError, match="expected bytes"):
+        P.decode("not bytes")  # type: ignore[arg-type]
+    assert P.decode(bytearray(P.encode(sample("ack")))) == sample("ack")
+    assert P.decode(memoryview(P.encode(sample("ack")))) == sample("ack")
+
+
+def test_size_caps_on_decode():
+    wire = _wire(sample("control"))
+    wire["reason"] = "x" * 20_000  # a field limit would catch it too, but the cap comes first
+    with pytest.raises(P.ProtocolError, match="exceeds its cap of 16384"):
+        P.decode(_pack(wire))
+    with pytest.raises(P.ProtocolError, match="exceeds the largest cap"):
+        P.decode(b"\x80" + bytes(P.MAX_MESSAGE_BYTES))
+
+
+def test_size_cap_on_encode():
+    tensors = {"w": np.zeros(4_300_000, np.float32)}  # 17.2 MB > 16 MB
+    msg = P.DecoderWeights(agent_id="a", seq=0, group_id="a", round=0, n_samples=1, tensors=tensors)
+    with pytest.raises(P.ProtocolError, match="over its cap"):
+        P.encode(msg)
+
+
+def test_encode_refuses_unvalidated_copies_with_a_protocol_error():
+    # model_copy(update=...) skips validation; encode must still fail cleanly
+    broken = sample("frame_poses", n_frames=2).model_copy(update={"stamps": object()})
+    with pytest.raises(P.ProtocolError, match="cannot be serialised"):
+        P.encode(broken)
+    with pytest.raises(P.ProtocolError, match="expected a protocol message"):
+        P.encode({"type": "ack"})  # type: ignore[arg-type]
+
+
+def test_validation_error_names_field_and_expectation():
+    wire = _wire(sample("submap_delta", n_points=5, feature_dim=4))
+    wire["features"] = P.array_to_wire(np.zeros((5, 4), np.float32))
+    with pytest.raises(P.ProtocolError, match="'features'.*expected dtype float16, got float32"):
+        P.decode(_pack(wire))
+    wire = _wire(sample("ack"))
+    wire["extra"] = 1
+    with pytest.raises(P.ProtocolError, match="'extra'"):
+        P.decode(_pack(wire))
+    wire = _wire(sample("ack"))
+    wire["seq"] = -1
+    with pytest.raises(P.ProtocolError, match="'seq'"):
+        P.decode(_pack(wire))
+
+
+# --- arrays ----------------------------------------------------------------------------------
+
+
+def test_array_wire_layout_is_little_endian():
+    a = np.array([[1, 2, 3]], dtype=">u2")  # big-endian in memory
+    wire = P.array_to_wire(a)
+    assert wire == {"dtype": "uint16", "shape": [1, 3], "data": b"\x01\x00\x02\x00\x03\x00"}
+    back = P.array_from_wire(wire)
+    assert back.dtype == np.uint16 and back.dtype.isnative and back.tolist() == [[1, 2, 3]]
+
+
+@pytest.mark.parametrize("dtype", P.DTYPES)
+def test_array_round_trip_every_dtype(dtype):
+    a = (np.arange(24) % 2).astype(dtype).reshape(2, 3, 4)
+    back = P.array_from_wire(P.array_to_wire(a))
+    assert back.dtype == a.dtype and np.array_equal(back, a)
+
+
+@pytest.mark.parametrize(
+    "wire, needle",
+    [
+        ({"dtype": "float32", "shape": [2**31 - 1] * 8, "data": b""}, "needs"),
+        ({"dtype": "float32", "shape": [3], "data": b"\x00" * 11}, "needs 12 bytes"),
+        ({"dtype": "complex64", "shape": [1], "data": b"\x00" * 8}, "dtype must be one of"),
+        ({"dtype": "object", "shape": [1], "data": b"\x00" * 8}, "dtype must be one of"),
+        ({"dtype": "uint8", "shape": [-1], "data": b""}, "shape entries"),
+        ({"dtype": "uint8", "shape": [True], "data": b"\x00"}, "shape entries"),
+        ({"dtype": "uint8", "shape": [1] * 9, "data": b"\x00"}, "at most 8"),
+        ({"dtype": "uint8", "shape": 3, "data": b"\x00" * 3}, "shape must be a list"),
+        ({"dtype": "uint8", "shape": [1], "data": "x"}, "data must be bin"),
+        ({"dtype": "bool", "shape": [2], "data": b"\x01\x02"}, "only bytes 0 and 1"),
+        ({"dtype": "uint8", "shape": [1]}, "expected keys"),
+        ([1, 2], "expected a map"),
+    ],
+)
+def test_array_from_wire_errors(wire, needle):
+    with pytest.raises(P.ProtocolError, match=needle):
+        P.array_from_wire(wire)
+
+
+def test_python_side_casts_that_keep_values():
+    fields = _fields(sample("submap_delta", n_points=4, feature_dim=2))
+    msg = P.SubmapDelta(**{**fields, "features": fields["features"].astype(np.float64)})
+    assert msg.features.dtype == np.float16
+    msg = P.SubmapDelta(**{**fields, "anchor_kf_ids": fields["anchor_kf_ids"].astype(np.int64)})
+    assert msg.anchor_kf_ids.dtype == np.int32
+    with pytest.raises(ValidationError, match="do not fit in int32"):
+        P.SubmapDelta(**{**fields, "anchor_kf_ids": np.full(4, 2**40)})
+    with pytest.raises(ValidationError, match="expected integer dtype"):
+        P.SubmapDelta(**{**fields, "point_ids": fields["point_ids"].astype(np.float64)})
+    with pytest.raises(ValidationError, match="must be finite"):
+        P.SubmapDelta(**{**fields, "features": np.full((4, 2), 1e6)})  # inf in float16
+    with pytest.raises(ValidationError, match=r"expected shape float32 \[N, 3\]"):
+        P.SubmapDelta(**{**fields, "xyz_local": np.zeros((4, 2), np.float32)})
+
+
+def test_point_set_cross_checks():
+    fields = _fields(sample("submap_delta", n_points=4, feature_dim=2))
+    with pytest.raises(ValidationError, match="colors: has 3 rows"):
+        P.SubmapDelta(**{**fields, "colors": fields["colors"][:3]})
+    dup = fields["point_ids"].copy()
+    dup[1] = dup[0]
+    with pytest.raises(ValidationError, match="unique"):
+        P.SubmapDelta(**{**fields, "point_ids": dup})
+    with pytest.raises(ValidationError, match="both updated and removed"):
+        P.SubmapDelta(**{**fields, "removed_ids": fields["point_ids"][:1]})
+    with pytest.raises(ValidationError, match=">= 0"):
+        P.SubmapDelta(**{**fields, "point_ids": -1 - np.arange(4)})
+
+
+def test_pose_and_descriptor_checks():
+    good = dict(agent_id="a", seq=0, kf_id=0, frame_index=0, stamp=0.0, descriptor=_unit(8))
+    P.KeyframeMsg(**good, T_world_cam=np.eye(4, dtype=np.float32))  # cast to float64
+    skew = np.eye(4)
+    skew[0, 1] = 0.1
+    with pytest.raises(ValidationError, match="not orthonormal"):
+        P.KeyframeMsg(**good, T_world_cam=skew)
+    mirror = np.diag([1.0, 1.0, -1.0, 1.0])
+    with pytest.raises(ValidationError, match="not orthonormal"):
+        P.KeyframeMsg(**good, T_world_cam=mirror)
+    bottom = np.eye(4)
+    bottom[3, 0] = 1.0
+    with pytest.raises(ValidationError, match=r"last row"):
+        P.KeyframeMsg(**good, T_world_cam=bottom)
+    with pytest.raises(ValidationError, match="unit L2 norm"):
+        P.KeyframeMsg(**{**good, "descriptor": 2 * _unit(8)}, T_world_cam=np.eye(4))
+    with pytest.raises(ValidationError, match="finite"):
+        P.KeyframeMsg(**{**good, "stamp": math.nan}, T_world_cam=np.eye(4))
+    poses = random_poses(np.random.default_rng(0), 3)
+    assert np.allclose(poses[:, :3, :3] @ poses[:, :3, :3].transpose(0, 2, 1), np.eye(3))
+
+
+# --- images ----------------------------------------------------------------------------------
+
+
+def _image_fields(**over):
+    rng = np.random.default_rng(0)
+    fields = dict(agent_id="a", kf_id=1, fx=50.0, fy=50.0, cx=31.5, cy=23.5, width=64, height=48)
+    fields["rgb"] = rng.integers(0, 256, (48, 64, 3)).astype(np.uint8)
+    fields["depth"] = rng.integers(0, 5000, (48, 64)).astype(np.uint16)
+    fields.update(over)
+    return fields
+
+
+def test_image_png_is_lossless_and_rgb_in_memory():
+    rgb = np.zeros((48, 64, 3), np.uint8)
+    rgb[..., 0] = 255  # pure red
+    msg = P.KeyframeImage(**_image_fields(rgb=rgb, rgb_codec="png"))
+    back = P.decode(P.encode(msg))
+    assert back == msg
+    raw = _wire(msg)["rgb"]["data"]
+    bgr = cv2.imdecode(np.frombuffer(raw, np.uint8), cv2.IMREAD_UNCHANGED)
+    assert bgr[0, 0].tolist() == [0, 0, 255]  # OpenCV order on the wire's codec side only
+
+
+def test_image_jpeg_is_close():
+    msg = sample("keyframe_image", width=160, height=120, rgb_codec="jpeg")
+    back = P.decode(P.encode(msg))
+    assert np.array_equal(back.depth, msg.depth)
+    assert np.abs(back.rgb.astype(int) - msg.rgb.astype(int)).mean() < 3.0
+
+
+def test_depth_metres_conversion():
+    depth_m = np.array([[0.0, 1.0, 2.0001], [np.nan, 70.0, -1.0]], np.float32)
+    fields = _image_fields(width=3, height=2, rgb=None)
+    del fields["depth"]
+    msg = P.KeyframeImage.from_metres(depth_m, depth_scale=1000.0, **fields)
+    assert msg.depth.tolist() == [[0, 1000, 2000], [0, 0, 0]]
+    back = P.decode(P.encode(msg)).depth_metres()
+    assert back.dtype == np.float32
+    assert np.allclose(back, [[0, 1, 2.0], [0, 0, 0]], atol=5e-4)
+
+
+@pytest.mark.parametrize(
+    "mutate, needle",
+    [
+        (lambda w: w.update(width=65), "header says 64x48"),
+        (lambda w: w["rgb"].update(codec="jpeg"), "differs from rgb_codec"),
+        (lambda w: w["depth"].update(data=b"\x89PNG\r\n\x1a\nshort"), "IHDR"),
+        (lambda w: w["depth"].update(data=b"GIF89a" + bytes(40)), "neither PNG nor JPEG"),
+        (lambda w: w.update(rgb=w["depth"]), "16-bit with 1"),
+        (lambda w: w["rgb"].update(extra=1), "codec/data"),
+        (lambda w: w.update(width=4096, height=4096), "header says 64x48"),
+    ],
+)
+def test_image_decode_errors(mutate, needle):
+    wire = _wire(P.KeyframeImage(**_image_fields(rgb_codec="png")))
+    mutate(wire)
+    with pytest.raises(P.ProtocolError, match=needle):
+        P.decode(_pack(wire))
+
+
+def test_image_corrupt_body_is_a_protocol_error():
+    wire = _wire(P.KeyframeImage(**_image_fields(rgb_codec="png")))
+    data = bytearray(wire["depth"]["data"])
+    data[40:-12] = bytes(len(data) - 52)  # keep the header, wipe the compressed stream
+    wire["depth"]["data"] = bytes(data)
+    with pytest.raises(P.ProtocolError, match="depth"):
+        P.decode(_pack(wire))
+
+
+def test_image_request_needs_something():
+    with pytest.raises(ValidationError, match="at least one"):
+        P.KeyframeImageRequest(agent_id="a", kf_id=0, want_rgb=False, want_depth=False)
+
+
+# --- server side -----------------------------------------------------------------------------
+
+
+def test_server_update_checks():
+    msg = sample("server_update", n_points=5, feature_dim=2)
+    fields = _fields(msg)
+    with pytest.raises(ValidationError, match="must include agent_id"):
+        P.ServerUpdate(**{**fields, "group_members": ["agent-1"]})
+    with pytest.raises(ValidationError, match="receiving agent"):
+        block = msg.foreign[0].model_copy(update={"source_agent_id": "agent-0"})
+        P.ServerUpdate(**{**fields, "foreign": [block]})
+    with pytest.raises(ValidationError, match="T_group_kf: has 3 poses, kf_ids has 2"):
+        P.ServerUpdate(**{**fields, "kf_ids": fields["kf_ids"][:2]})
+
+
+def test_status_summary_is_json_data():
+    msg = P.Status(stamp=1.0, summary={"n": np.int64(3), "t": (1, 2.5), "ok": np.bool_(True)})
+    assert msg.summary == {"n": 3, "t": [1, 2.5], "ok": True}
+    assert P.decode(P.encode(msg)) == msg
+    deep: dict = {}
+    node = deep
+    for _ in range(20):
+        node["x"] = {}
+        node = node["x"]
+    for bad, needle in ((deep, "deeper"), ({"x": math.inf}, "finite"), ({"s": {1}}, "set")):
+        with pytest.raises(ValidationError, match=needle):
+            P.Status(stamp=0.0, summary=bad)
+
+
+def test_tensor_names_and_counts_are_limited():
+    ok = dict(agent_id="a", seq=0, group_id="a", round=0, n_samples=1)
+    with pytest.raises(ValidationError):
+        P.DecoderWeights(**ok, tensors={"bad name!": np.zeros(1, np.float32)})
+    with pytest.raises(ValidationError):
+        P.DecoderWeights(**ok, tensors={"x" * 200: np.zeros(1, np.float32)})
+    with pytest.raises(ValidationError):
+        P.DecoderWeights(**ok, tensors={f"t{i}": np.zeros(1, np.float32) for i in range(300)})
+    with pytest.raises(ValidationError):
+        P.DecoderWeights(**ok, tensors={})

@@ -1,0 +1,153 @@
+"""Key expressions: building, parsing back, and refusing ids that would break them."""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from cpslam.protocol import ProtocolError, keys
+
+S, A = "demo", "agent-0"
+
+
+def test_agent_keys():
+    assert keys.agent_keyframe(S, A) == "cpslam/demo/agent/agent-0/keyframe"
+    assert keys.agent_submap(S, A) == "cpslam/demo/agent/agent-0/submap"
+    assert keys.agent_decoder(S, A) == "cpslam/demo/agent/agent-0/decoder"
+    assert keys.agent_frames(S, A) == "cpslam/demo/agent/agent-0/frames"
+    assert keys.agent_image(S, A, 12) == "cpslam/demo/agent/agent-0/image/12"
+    assert keys.agent_image(S, A, np.int64(12)) == "cpslam/demo/agent/agent-0/image/12"
+    assert keys.agent_image_queryable(S, A) == "cpslam/demo/agent/agent-0/image/*"
+
+
+def test_server_and_liveliness_keys():
+    assert keys.server_agent_update(S, A) == "cpslam/demo/server/agent/agent-0/update"
+    assert keys.server_agent_ack(S, A) == "cpslam/demo/server/agent/agent-0/ack"
+    assert keys.server_agent_all(S, A) == "cpslam/demo/server/agent/agent-0/*"
+    assert keys.all_server_agent(S) == "cpslam/demo/server/agent/*/*"
+    assert keys.server_group_decoder(S, "g_1") == "cpslam/demo/server/group/g_1/decoder"
+    assert keys.all_group_decoders(S) == "cpslam/demo/server/group/*/decoder"
+    assert keys.server_status(S) == "cpslam/demo/server/status"
+    assert keys.server_control(S) == "cpslam/demo/server/control"
+    assert keys.alive_agent(S, A) == "cpslam/demo/alive/agent/agent-0"
+    assert keys.alive_agents(S) == "cpslam/demo/alive/agent/*"
+    assert keys.alive_server(S) == "cpslam/demo/alive/server"
+    assert keys.alive_all(S) == "cpslam/demo/alive/**"
+
+
+def test_wildcards():
+    assert keys.all_agents_topic(S, "keyframe") == "cpslam/demo/agent/*/keyframe"
+    assert keys.all_agents(S) == "cpslam/demo/agent/*/*"
+    with pytest.raises(ProtocolError, match="agent topic"):
+        keys.all_agents_topic(S, "image")
+
+
+def _matches(pattern: str, key: str) -> bool:
+    """Zenoh semantics for the wildcards we use: '*' one chunk, '**' any chunks."""
+    regex = "/".join(
+        ".+" if c == "**" else "[^/]+" if c == "*" else re.escape(c) for c in pattern.split("/")
+    )
+    return re.fullmatch(regex, key) is not None
+
+
+def test_wildcards_match_exactly_their_keys():
+    everything = [
+        *(keys.agent_topic(S, A, t) for t in keys.AGENT_TOPICS),
+        keys.agent_image(S, A, 3),
+        keys.server_agent_update(S, A),
+        keys.server_agent_ack(S, A),
+        keys.server_group_decoder(S, "g"),
+        keys.server_status(S),
+        keys.server_control(S),
+        keys.alive_agent(S, A),
+        keys.alive_server(S),
+    ]
+    hits = {k for k in everything if _matches(keys.all_agents(S), k)}
+    assert hits == {keys.agent_topic(S, A, t) for t in keys.AGENT_TOPICS}
+    hits = {k for k in everything if _matches(keys.alive_all(S), k)}
+    assert hits == {keys.alive_agent(S, A), keys.alive_server(S)}
+    assert [k for k in everything if _matches(keys.agent_image_queryable(S, A), k)] == [
+        keys.agent_image(S, A, 3)
+    ]
+    assert [k for k in everything if _matches(keys.server_agent_all(S, A), k)] == [
+        keys.server_agent_update(S, A),
+        keys.server_agent_ack(S, A),
+    ]
+
+
+def test_parse_round_trips():
+    for topic in keys.AGENT_TOPICS:
+        assert keys.parse_agent_key(S, keys.agent_topic(S, A, topic)) == (A, topic)
+    assert keys.parse_image_key(S, keys.agent_image(S, A, 2**31 - 1)) == (A, 2**31 - 1)
+    assert keys.parse_server_agent_key(S, keys.server_agent_ack(S, A)) == (A, "ack")
+    assert keys.parse_group_decoder(S, keys.server_group_decoder(S, "g")) == "g"
+    assert keys.parse_alive_agent(S, keys.alive_agent(S, A)) == A
+
+
+@pytest.mark.parametrize(
+    "parse, key",
+    [
+        (keys.parse_agent_key, "cpslam/other/agent/a/keyframe"),
+        (keys.parse_agent_key, "cpslam/demo/agent/a/image/3"),
+        (keys.parse_agent_key, "cpslam/demo/agent/a/unknown"),
+        (keys.parse_agent_key, "cpslam/demo/agent/a*b/keyframe"),
+        (keys.parse_image_key, "cpslam/demo/agent/a/image/-1"),
+        (keys.parse_image_key, "cpslam/demo/agent/a/image/007"),
+        (keys.parse_image_key, "cpslam/demo/agent/a/image/2147483648"),
+        (keys.parse_image_key, "cpslam/demo/agent/a/image/x"),
+        (keys.parse_server_agent_key, "cpslam/demo/server/agent/a/other"),
+        (keys.parse_group_decoder, "cpslam/demo/server/group/g/update"),
+        (keys.parse_alive_agent, "cpslam/demo/alive/server"),
+        (keys.parse_alive_agent, b"cpslam/demo/alive/agent/a"),
+    ],
+)
+def test_parse_rejects(parse, key):
+    with pytest.raises(ProtocolError):
+        parse(S, key)
+
+
+@pytest.mark.parametrize(
+    "bad", ["", "a/b", "a*", "$x", "a?b", "a#", "a b", "é", "a\n", "x" * 65, None, 3]
+)
+def test_bad_ids_are_refused(bad):
+    with pytest.raises(ProtocolError, match="agent id must be"):
+        keys.agent_keyframe(S, bad)
+    with pytest.raises(ProtocolError, match="session must be"):
+        keys.server_status(bad)
+
+
+@pytest.mark.parametrize("bad", [-1, 2**31, True, 1.0, "3"])
+def test_bad_keyframe_ids_are_refused(bad):
+    with pytest.raises(ProtocolError, match="keyframe id"):
+        keys.agent_image(S, A, bad)
+
+
+@settings(max_examples=500, deadline=None)
+@given(st.text(max_size=70), st.text(max_size=70))
+def test_any_text_is_a_valid_id_or_refused(session, agent):
+    valid = all(re.fullmatch(r"[A-Za-z0-9_-]{1,64}", x) for x in (session, agent))
+    try:
+        key = keys.agent_frames(session, agent)
+    except ProtocolError:
+        assert not valid
+        return
+    assert valid
+    assert keys.parse_agent_key(session, key) == (agent, "frames")
+    assert not set(agent) & set("/*$?#")
+
+
+def test_protocol_imports_no_torch_zenoh_or_common():
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, cpslam.protocol, cpslam.protocol.samples\n"
+        "bad = [m for m in sys.modules if m.split('.')[0] in ('torch', 'zenoh')"
+        " or m.startswith('cpslam.common')]\n"
+        "assert not bad, bad\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True)
