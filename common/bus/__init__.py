@@ -15,6 +15,7 @@ from cpslam.common.bus.interface import (
     QueryHandler,
     Reply,
 )
+from cpslam.common.bus.factory import bus_from_config
 from cpslam.common.bus.keyexpr import intersects, is_concrete, validate_key_expr
 from cpslam.common.bus.liveliness import LivelinessToken, LivelinessWatcher
 from cpslam.common.bus.memory import InMemoryBus, InMemoryNetwork
@@ -35,6 +36,7 @@ __all__ = [
     "Sample",
     "Subscription",
     "ZenohBus",
+    "bus_from_config",
     "intersects",
     "is_concrete",
     "validate_key_expr",
