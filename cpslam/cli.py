@@ -10,6 +10,8 @@ from __future__ import annotations
 import typer
 
 from cpslam import __version__
+from cpslam.common.config.cli import presets as config_presets
+from cpslam.common.config.cli import show as config_show
 from cpslam.common.datasets.cli import info as dataset_info
 from cpslam.common.eval.cli import ate as eval_ate
 from cpslam.common.logs import setup_logging
@@ -25,10 +27,14 @@ dataset_app = typer.Typer(no_args_is_help=True, help="Inspect and generate RGB-D
 eval_app = typer.Typer(no_args_is_help=True, help="Evaluate trajectories against ground truth.")
 app.add_typer(dataset_app, name="dataset")
 app.add_typer(eval_app, name="eval")
+config_app = typer.Typer(no_args_is_help=True, help="Show the effective configuration and presets.")
+app.add_typer(config_app, name="config")
 
 dataset_app.command("info")(dataset_info)
 dataset_app.command("synth")(dataset_synth)
 eval_app.command("ate")(eval_ate)
+config_app.command("show")(config_show)
+config_app.command("presets")(config_presets)
 
 
 def _version(value: bool) -> None:
