@@ -1,0 +1,56 @@
+"""Run folders: one directory per run holding its effective config, outputs and metrics."""
+
+from __future__ import annotations
+
+import json
+import resource
+import sys
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+def create_run_dir(out: str | Path, name: str | None = None) -> Path:
+    """`out/name`, or `out/YYYYmmdd-HHMMSS` when no name is given; created if missing.
+
+    A timestamped folder never reuses an existing one (a suffix is added), so two runs started
+    in the same second do not mix their outputs.
+    """
+    base = Path(out)
+    if name:
+        run = base / name
+    else:
+        stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
+        run = base / stamp
+        suffix = 1
+        while run.exists():
+            run = base / f"{stamp}-{suffix}"
+            suffix += 1
+    run.mkdir(parents=True, exist_ok=True)
+    return run
+
+
+def write_json(path: str | Path, data: Any) -> Path:
+    """Write JSON with numpy scalars and arrays converted to plain numbers and lists."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(data, indent=2, default=_to_builtin) + "\n")
+    return path
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process in MiB (Linux reports KiB, macOS bytes)."""
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / (1024 * 1024) if sys.platform == "darwin" else peak / 1024
+
+
+def _to_builtin(value: Any) -> Any:
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
