@@ -14,6 +14,7 @@ from cpslam.common.config.cli import presets as config_presets
 from cpslam.common.config.cli import show as config_show
 from cpslam.common.datasets.cli import info as dataset_info
 from cpslam.common.eval.cli import ate as eval_ate
+from cpslam.common.eval.recon_cli import recon as eval_recon
 from cpslam.common.logs import setup_logging
 from cpslam.common.synth.cli import synth as dataset_synth
 
@@ -33,6 +34,7 @@ app.add_typer(config_app, name="config")
 dataset_app.command("info")(dataset_info)
 dataset_app.command("synth")(dataset_synth)
 eval_app.command("ate")(eval_ate)
+eval_app.command("recon")(eval_recon)
 config_app.command("show")(config_show)
 config_app.command("presets")(config_presets)
 

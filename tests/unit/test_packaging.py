@@ -52,6 +52,7 @@ def test_cli_help_and_version() -> None:
     result = runner.invoke(app, ["--version"])
     assert result.exit_code == 0 and __version__ in result.output
     for sub in (["dataset", "--help"], ["dataset", "synth", "--help"], ["dataset", "info", "--help"],
-                ["eval", "ate", "--help"]):
+                ["eval", "ate", "--help"], ["eval", "recon", "--help"],
+                ["config", "show", "--help"]):
         result = runner.invoke(app, sub)
         assert result.exit_code == 0, (sub, result.output)
