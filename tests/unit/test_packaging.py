@@ -51,8 +51,8 @@ def test_cli_help_and_version() -> None:
         assert command in result.output
     result = runner.invoke(app, ["--version"])
     assert result.exit_code == 0 and __version__ in result.output
-    for sub in (["dataset", "--help"], ["dataset", "synth", "--help"], ["dataset", "info", "--help"],
-                ["eval", "ate", "--help"], ["eval", "recon", "--help"],
-                ["config", "show", "--help"]):
+    commands = (["dataset"], ["dataset", "synth"], ["dataset", "info"], ["eval", "ate"],
+                ["eval", "recon"], ["config", "show"])
+    for sub in (c + ["--help"] for c in commands):
         result = runner.invoke(app, sub)
         assert result.exit_code == 0, (sub, result.output)
