@@ -7,6 +7,7 @@
 The bus knows nothing of message types; `cpslam.protocol` encodes and decodes.
 """
 
+from cpslam.common.bus.factory import bus_from_config
 from cpslam.common.bus.interface import (
     Bus,
     BusClosedError,
@@ -15,7 +16,6 @@ from cpslam.common.bus.interface import (
     QueryHandler,
     Reply,
 )
-from cpslam.common.bus.factory import bus_from_config
 from cpslam.common.bus.keyexpr import intersects, is_concrete, validate_key_expr
 from cpslam.common.bus.liveliness import LivelinessToken, LivelinessWatcher
 from cpslam.common.bus.memory import InMemoryBus, InMemoryNetwork

@@ -12,7 +12,8 @@ from typing import Annotated
 import typer
 
 PresetOpt = Annotated[
-    str, typer.Option("--preset", "-p", help="Preset: paper (GPU), cpu (2-core CPU) or tiny (tests).")
+    str,
+    typer.Option("--preset", "-p", help="Preset: paper (GPU), cpu (2-core CPU) or tiny (tests)."),
 ]
 ConfigOpt = Annotated[
     Path | None,
@@ -20,7 +21,7 @@ ConfigOpt = Annotated[
 ]
 SetOpt = Annotated[
     list[str] | None,
-    typer.Option("--set", "-s", help="Override one key, e.g. --set tracking.iters=50 (repeatable)."),
+    typer.Option("--set", "-s", help="Override a key, e.g. --set tracking.iters=50 (repeatable)."),
 ]
 DeviceOpt = Annotated[
     str | None, typer.Option("--device", help="auto, cpu, cuda or cuda:N (overrides run.device).")

@@ -17,6 +17,7 @@ from __future__ import annotations
 import logging
 
 import numpy as np
+
 from cpslam.common.geometry import invert
 
 logger = logging.getLogger(__name__)

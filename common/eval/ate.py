@@ -13,6 +13,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+
 from cpslam.common.eval.align import ALIGN_MODES, MIN_PAIRS, apply_alignment, similarity_matrix
 from cpslam.common.eval.align import align as fit_alignment
 from cpslam.common.geometry import so3_log

@@ -9,10 +9,11 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-from cpslam.common.eval.ate import DEFAULT_MAX_DT, AteResult, evaluate_ate
-from cpslam.common.eval.source import load_trajectory, locate_trajectory
 from rich.console import Console
 from rich.table import Table
+
+from cpslam.common.eval.ate import DEFAULT_MAX_DT, AteResult, evaluate_ate
+from cpslam.common.eval.source import load_trajectory, locate_trajectory
 
 logger = logging.getLogger(__name__)
 

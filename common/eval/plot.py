@@ -7,6 +7,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+
 from cpslam.common.eval.ate import AteResult
 
 logger = logging.getLogger(__name__)

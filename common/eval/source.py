@@ -13,6 +13,7 @@ import logging
 from pathlib import Path
 
 import numpy as np
+
 from cpslam.common.geometry import is_rigid, project_to_rigid
 from cpslam.common.trajectory import Trajectory, read_tum
 

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from cpslam.common.eval import (
     align,
     apply_alignment,

@@ -8,12 +8,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import typer
+from typer.testing import CliRunner
+
 from cpslam.common.eval import evaluate_ate, joint_ate
 from cpslam.common.eval.cli import ate
 from cpslam.common.eval.plot import plot_ate, top_view_axes
 from cpslam.common.geometry import se3_exp
 from cpslam.common.trajectory import write_tum
-from typer.testing import CliRunner
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
