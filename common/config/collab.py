@@ -45,10 +45,10 @@ class PlaceRecognitionConfig(Section):
 class LoopConfig(Section):
     """Loop detection, verification and relative pose estimation."""
 
-    lambda_fine: float = Field(default=0.9, ge=-1.0, le=1.0)
-    """Descriptor cosine similarity above which a pair is used for sub-map alignment."""
-    lambda_coarse: float = Field(default=0.8, ge=-1.0, le=1.0)
-    """Descriptor cosine similarity above which a pair adds a pose-graph loop edge."""
+    lambda_fine: float = Field(default=0.8, ge=-1.0, le=1.0)
+    """Descriptor cosine above which a pair may align sub-maps (calibrated: docs/loops.md)."""
+    lambda_coarse: float = Field(default=0.65, ge=-1.0, le=1.0)
+    """Descriptor cosine above which a pair may add a pose-graph loop edge (docs/loops.md)."""
     min_keyframe_gap: NonNegativeInt = 3
     """Within one agent, keyframes fewer than this many keyframes apart are not loop candidates."""
     max_candidates: PositiveInt = 3
@@ -62,9 +62,9 @@ class LoopConfig(Section):
     register_iters: PositiveInt = 200
     """Tracking steps refining a loop's relative pose against the other sub-map (our choice)."""
     verify_max_residual: PositiveFloat = 0.05
-    """A loop is accepted when the mean depth residual after alignment is at most this (m)."""
+    """Largest accepted RMS point-to-plane residual of a loop after alignment (m)."""
     verify_min_overlap: float = Field(default=0.3, ge=0.0, le=1.0)
-    """A loop is accepted when at least this fraction of pixels overlaps the other sub-map."""
+    """A loop is accepted when at least this fraction of the smaller view's points overlaps."""
 
     @model_validator(mode="after")
     def _check(self) -> LoopConfig:

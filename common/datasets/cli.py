@@ -30,12 +30,27 @@ def info(
         int, typer.Option("--samples", min=1, help="Frames sampled for the depth statistics.")
     ] = 5,
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON instead of text.")] = False,
+    camera: Annotated[
+        list[str] | None,
+        typer.Option("--camera", help="Override a camera.yaml key, e.g. --camera fx=525 "
+                     "(fx, fy, cx, cy, width, height, depth_scale, fps; repeatable)."),
+    ] = None,
 ) -> None:
-    """Describe an RGB-D sequence: format, frames, resolution, intrinsics, depth, ground truth."""
+    """Describe an RGB-D sequence: format, frames, resolution, intrinsics, depth, ground truth.
+
+    Examples:
+
+      cpslam dataset info runs/data/room/agent_0
+
+      cpslam dataset info ../shared/data/7scenes-kitchen-0-299 --frames 0:100 --json
+
+      cpslam dataset info my_tum_sequence --camera fx=525 --camera fy=525 --camera cx=319.5
+    """
     from cpslam.common.datasets import DatasetError, open_sequence
 
     try:
-        sequence = open_sequence(path, fmt=format, frames=frames)
+        overrides = _parse_camera(camera or [])
+        sequence = open_sequence(path, fmt=format, frames=frames, overrides=overrides or None)
         summary = summarize(sequence, samples=samples)
     except DatasetError as e:
         typer.echo(f"error: {e}", err=True)
@@ -128,3 +143,19 @@ def format_summary(summary: dict[str, Any]) -> str:
         ("ground truth", truth),
     ]
     return "\n".join(f"{name:<13}{value}" for name, value in rows)
+
+
+def _parse_camera(items: list[str]) -> dict[str, float]:
+    """`["fx=525", "cy=239.5"]` -> `{"fx": 525.0, "cy": 239.5}`; errors name the item."""
+    from cpslam.common.datasets import DatasetError
+
+    out: dict[str, float] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        try:
+            if not sep:
+                raise ValueError
+            out[key.strip()] = float(value)
+        except ValueError:
+            raise DatasetError(f"--camera {item!r}: expected KEY=NUMBER, e.g. fx=525") from None
+    return out

@@ -493,3 +493,24 @@ def test_info_error_exits_2_with_message(tmp_path: Path) -> None:
     assert "no such folder" in result.output and "Traceback" not in result.output
     result = CliRunner().invoke(_app(), ["info", str(tmp_path), "--frames", "x"])
     assert result.exit_code == 2 and "START:STOP" in result.output
+
+
+def test_info_camera_overrides_from_the_command_line(tmp_path) -> None:
+    import typer
+    from typer.testing import CliRunner
+
+    from cpslam.common.datasets.cli import info
+    from cpslam.common.synth import generate
+
+    out = generate(tmp_path / "s", frames=3, width=64, height=48)
+    app = typer.Typer()
+    app.command()(info)
+    seq = str(out.agent_dirs[0])
+    result = CliRunner().invoke(app, [seq, "--camera", "fx=100", "--camera", "cx=30", "--json"])
+    assert result.exit_code == 0, result.output
+    data = __import__("json").loads(result.output)
+    assert data["intrinsics"]["fx"] == 100 and data["intrinsics"]["cx"] == 30
+    result = CliRunner().invoke(app, [seq, "--camera", "fx"])
+    assert result.exit_code == 2 and "expected KEY=NUMBER" in result.output
+    result = CliRunner().invoke(app, [seq, "--camera", "focal=3"])
+    assert result.exit_code == 2 and "focal" in result.output
