@@ -1,0 +1,239 @@
+"""The server's loop over a bus: agents' messages in, the back end's answers out.
+
+`ServerNode` subscribes to every agent's topics (``agent/*/*``), to ``server/control`` and to
+the agents' liveliness; `poll` decodes what arrived (a payload that fails validation is logged
+with its key, counted and dropped, never raised), feeds `Backend.handle` in (agent, seq) order,
+runs `Backend.step` and publishes the `Outgoing` messages on their keys. Keyframe images are
+pulled with a bus query to the agent's image queryable (`fetch_image`). A status queryable
+answers with `Backend.status()`. `finalise` runs the back end's final optimisation and writes
+the run folder (`export_run`).
+
+`run` is the daemon loop (poll until a `Control` asks to finalise or shut down); a driver
+that needs lock-step determinism (``cpslam run``) calls `poll` itself instead.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import Counter
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from cpslam import protocol
+from cpslam.protocol import (
+    Ack,
+    Control,
+    ErrorReply,
+    GroupDecoder,
+    KeyframeImage,
+    KeyframeImageRequest,
+    ProtocolError,
+    ServerUpdate,
+    Status,
+    keys,
+)
+from cpslam.server.backend import Backend, Outgoing
+from cpslam.server.export import export_run
+
+if TYPE_CHECKING:
+    from cpslam.common.bus import Bus
+    from cpslam.common.config import CpslamConfig
+    from cpslam.server.result import FinalResult
+
+__all__ = ["ServerNode"]
+
+logger = logging.getLogger(__name__)
+
+
+class ServerNode:
+    """The back end on a bus.
+
+    Args:
+        cfg: the whole config (back end settings; ``transport.session`` and ``queue_size``).
+        bus: an open bus (the node does not close it).
+        run_dir: where `finalise` exports.
+        image_timeout_s: how long a keyframe image query may take.
+        backend_kwargs: passed to `Backend.from_config` (e.g. ``now`` or ``refine_pose``).
+    """
+
+    def __init__(self, cfg: CpslamConfig, bus: Bus, run_dir: str | Path,
+                 image_timeout_s: float = 10.0, **backend_kwargs: Any) -> None:
+        self.cfg, self.bus, self.run_dir = cfg, bus, Path(run_dir)
+        self.session = keys.check_id(cfg.transport.session, "transport.session")
+        self.image_timeout_s = image_timeout_s
+        self.backend = Backend.from_config(cfg, self.fetch_image, **backend_kwargs)
+        self.dropped: Counter[str] = Counter()
+        self.control: Control | None = None
+        self.step_errors = 0
+        self.finalised: FinalResult | None = None
+        self._lock = threading.RLock()  # the back end is touched by poll and the status query
+        self._events: list[tuple[str, str]] = []  # liveliness (join|leave, agent)
+        self._events_lock = threading.Lock()
+        self._handles: list[Any] = []
+        self._subs: list[Any] = []
+
+    # ------------------------------------------------------------------------- lifecycle
+
+    def start(self) -> ServerNode:
+        """Declare presence, subscriptions, the status queryable and the liveliness watch."""
+        queue = max(self.cfg.transport.queue_size, 1024)
+        s = self.session
+        self._subs = [self.bus.subscribe(keys.all_agents(s), queue_size=queue),
+                      self.bus.subscribe(keys.server_control(s), queue_size=16)]
+        self._handles = [
+            *self._subs,
+            self.bus.declare_queryable(keys.server_status(s), self._serve_status),
+            self.bus.watch_liveliness(keys.alive_agents(s), on_join=self._joined,
+                                      on_leave=self._left),
+            self.bus.declare_liveliness(keys.alive_server(s)),
+        ]
+        logger.info("server node on session %s", s)
+        return self
+
+    def close(self) -> None:
+        """Withdraw everything `start` declared (idempotent)."""
+        for handle in self._handles:
+            for name in ("close", "undeclare"):
+                if hasattr(handle, name):
+                    getattr(handle, name)()
+                    break
+        self._handles, self._subs = [], []
+
+    def run(self, poll_s: float = 0.05, stop: threading.Event | None = None) -> FinalResult | None:
+        """Serve until a Control message (or `stop`) ends it; finalise unless told to shut
+        down. Returns the final result (None on shutdown)."""
+        while self.control is None and not (stop is not None and stop.is_set()):
+            if not self.poll():
+                time.sleep(poll_s)
+        if self.control is not None and self.control.action == "shutdown":
+            logger.info("shutdown requested: %s", self.control.reason)
+            return None
+        return self.finalise()
+
+    # ------------------------------------------------------------------------- work
+
+    def poll(self) -> int:
+        """Handle everything queued, run one back-end step, publish. Returns messages handled."""
+        self._liveliness()
+        control_sub = self._subs[1]
+        while (sample := control_sub.get(timeout=0)) is not None:
+            msg = self._decode(sample.key, sample.payload, Control)
+            if msg is not None:
+                logger.info("control: %s (%s)", msg.action, msg.reason)
+                self.control = msg
+        batch = []
+        while (sample := self._subs[0].get(timeout=0)) is not None:
+            msg = self._decode(sample.key, sample.payload, None)
+            if msg is None:
+                continue
+            try:
+                agent, _ = keys.parse_agent_key(self.session, sample.key)
+            except ProtocolError as exc:
+                self._drop(sample.key, f"bad key: {exc}")
+                continue
+            if getattr(msg, "agent_id", None) != agent:
+                self._drop(sample.key, "agent_id does not match the key")
+                continue
+            batch.append((agent, int(msg.seq), msg, len(sample.payload)))
+        batch.sort(key=lambda item: item[:2])
+        with self._lock:
+            for _, _, msg, nbytes in batch:
+                self.publish(self.backend.handle(msg, nbytes))
+            try:
+                self.publish(self.backend.step())
+            except Exception:  # noqa: BLE001 - the server outlives a failing step
+                self.step_errors += 1
+                logger.exception("back-end step failed (%d so far)", self.step_errors)
+        return len(batch)
+
+    def publish(self, out: list[Outgoing]) -> None:
+        """Encode and put each outgoing message on its key (too large: logged, dropped)."""
+        for item in out:
+            msg = item.message
+            if item.scope == "group" and isinstance(msg, GroupDecoder):
+                key = keys.server_group_decoder(self.session, item.target)
+            elif isinstance(msg, ServerUpdate):
+                key = keys.server_agent_update(self.session, item.target)
+            elif isinstance(msg, Ack):
+                key = keys.server_agent_ack(self.session, item.target)
+            else:
+                logger.error("no key for outgoing %s to %s", type(msg).__name__, item.target)
+                continue
+            try:
+                self.bus.publish(key, protocol.encode(msg))
+            except ProtocolError as exc:
+                logger.error("could not send %s on %s: %s", type(msg).__name__, key, exc)
+
+    def fetch_image(self, agent_id: str, kf_id: int) -> KeyframeImage | None:
+        """A keyframe's RGB-D from the agent's image queryable; None if it cannot be had."""
+        request = KeyframeImageRequest(agent_id=agent_id, kf_id=int(kf_id))
+        key = keys.agent_image(self.session, agent_id, int(kf_id))
+        replies = self.bus.query(key, protocol.encode(request), timeout_s=self.image_timeout_s)
+        for reply in replies:
+            if not reply.ok:
+                logger.warning("image %s/%d: agent failed: %s", agent_id, kf_id,
+                               reply.payload[:200].decode(errors="replace"))
+                continue
+            msg = self._decode(key, reply.payload, (KeyframeImage, ErrorReply))
+            if isinstance(msg, KeyframeImage):
+                return msg
+            if isinstance(msg, ErrorReply):
+                logger.warning("image %s/%d: %s %s", agent_id, kf_id, msg.code, msg.reason)
+        if not replies:
+            logger.warning("image %s/%d: no reply within %.1f s", agent_id, kf_id,
+                           self.image_timeout_s)
+        return None
+
+    def finalise(self) -> FinalResult:
+        """Final optimisation and export into the run folder (once)."""
+        with self._lock:
+            if self.finalised is None:
+                self.publish(self.backend.step())
+                self.finalised = self.backend.finalise()
+                self.finalised.metrics["bus"] = {"dropped": dict(self.dropped),
+                                                 "traffic": self.bus.stats()}
+                export_run(self.finalised, self.run_dir)
+        return self.finalised
+
+    # ------------------------------------------------------------------------- helpers
+
+    def _decode(self, key: str, payload: bytes, expected: Any) -> Any:
+        try:
+            return protocol.decode(payload, expected=expected)
+        except ProtocolError as exc:
+            self._drop(key, str(exc))
+            return None
+
+    def _drop(self, key: str, reason: str) -> None:
+        self.dropped[key] += 1
+        logger.warning("dropped message on %s (%d so far): %s", key, self.dropped[key], reason)
+
+    def _serve_status(self, key: str, payload: bytes | None) -> bytes:
+        with self._lock:
+            summary = self.backend.status()
+        summary["bus_dropped"] = dict(self.dropped)
+        return protocol.encode(Status(stamp=time.time(), summary=summary))
+
+    def _joined(self, key: str) -> None:
+        with self._events_lock:
+            self._events.append(("join", key))
+
+    def _left(self, key: str) -> None:
+        with self._events_lock:
+            self._events.append(("leave", key))
+
+    def _liveliness(self) -> None:
+        with self._events_lock:
+            events, self._events = self._events, []
+        for kind, key in events:
+            try:
+                agent = keys.parse_alive_agent(self.session, key)
+            except ProtocolError as exc:
+                logger.warning("liveliness key %s: %s", key, exc)
+                continue
+            logger.info("agent %s %s", agent, "joined" if kind == "join" else "left")
+            if kind == "leave":
+                with self._lock:
+                    self.backend.agent_left(agent)

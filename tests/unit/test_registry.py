@@ -1,0 +1,110 @@
+"""Registry: idempotence by seq, acks, buffering of unknown anchors, bad content dropped."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from cpslam.common.geometry import compose, se3_exp
+from cpslam.protocol import Ack, DecoderWeights, FramePoses, KeyframeMsg, SubmapDelta
+from cpslam.server.registry import Registry
+
+F = 4
+
+
+def keyframe(seq, kf, T=None, epoch=0, agent="a"):
+    d = np.zeros(8, np.float32)
+    d[kf % 8] = 1
+    return KeyframeMsg(agent_id=agent, seq=seq, kf_id=kf, frame_index=10 * kf, stamp=kf,
+                       T_world_cam=np.eye(4) if T is None else T, world_epoch=epoch,
+                       descriptor=d)
+
+
+def delta(seq, ids, anchor, f=F, removed=(), agent="a", x=0.0):
+    n = len(ids)
+    return SubmapDelta(agent_id=agent, seq=seq, point_ids=np.asarray(ids, np.int64),
+                       anchor_kf_ids=np.full(n, anchor, np.int32),
+                       xyz_local=np.full((n, 3), x, np.float32), features=np.zeros((n, f)),
+                       colors=np.zeros((n, 3), np.uint8),
+                       removed_ids=np.asarray(removed, np.int64))
+
+
+def test_replayed_seq_is_ignored_and_acked():
+    reg = Registry(F)
+    assert reg.handle(keyframe(0, 0)) == [Ack(agent_id="a", seq=0)]
+    assert reg.handle(delta(1, [0, 1], 0)) == [Ack(agent_id="a", seq=1)]
+    assert reg.handle(delta(1, [5, 6, 7], 0)) == [Ack(agent_id="a", seq=1)]  # replay
+    assert len(reg.agents["a"].points) == 2
+    assert reg.take_new_keyframes() == [("a", 0)]
+
+
+def test_out_of_order_seqs_ack_the_contiguous_prefix():
+    reg = Registry(F)
+    assert reg.handle(delta(2, [0], 0)) == []  # nothing contiguous from 0 yet
+    assert reg.handle(keyframe(1, 0)) == []
+    assert reg.handle(keyframe(0, 1)) == [Ack(agent_id="a", seq=2)]
+
+
+def test_unknown_anchor_waits_for_its_keyframe():
+    reg = Registry(F)
+    reg.handle(keyframe(0, 0))
+    reg.handle(delta(1, [0, 1, 2], 3))
+    reg.handle(FramePoses(agent_id="a", seq=2, frame_indices=[31], stamps=[3.1], kf_ids=[3],
+                          T_kf_frame=np.eye(4)[None]))
+    rec = reg.agents["a"]
+    assert len(rec.points) == 0 and len(rec.pending_points) == 3 and 31 in rec.pending_frames
+    reg.handle(keyframe(3, 3))
+    assert len(rec.points) == 3 and len(rec.pending_points) == 0 and 31 in rec.frames
+    reg.handle(delta(4, [9], 7))
+    assert reg.drop_unresolved() == 1
+    assert reg.dropped["anchor keyframe never arrived"] == 1
+
+
+def test_bad_content_is_dropped_with_a_reason_not_raised():
+    reg = Registry(F, decoder_shapes={"w": (2, 2)})
+    reg.handle(keyframe(0, 0))
+    reg.handle(delta(1, [0], 0, f=F + 1))
+    reg.handle(keyframe(2, 1, epoch=3))
+    reg.handle(DecoderWeights(agent_id="a", seq=3, group_id="a", round=0, n_samples=1,
+                              tensors={"w": np.zeros((3, 2), np.float32)}))
+    reg.handle(keyframe(4, 0))  # same keyframe id again
+    rec = reg.agents["a"]
+    assert len(rec.points) == 0 and list(rec.keyframes) == [0] and rec.decoder is None
+    reasons = " | ".join(reg.dropped)
+    assert "width 5" in reasons and "world_epoch 3" in reasons
+    assert "shape [3, 2]" in reasons and "already known" in reasons
+    assert rec.seq_floor == 4  # dropped messages are handled: acked, not resent forever
+
+
+def test_updates_removals_and_stale_writes():
+    reg = Registry(F)
+    reg.handle(keyframe(0, 0))
+    reg.handle(delta(2, [0, 1], 0, x=2.0))
+    reg.handle(delta(1, [0, 1, 2], 0, x=1.0))  # older, arrives late: only id 2 is new
+    rec = reg.agents["a"]
+    assert rec.points.ids.tolist() == [0, 1, 2]
+    assert rec.points.xyz[:, 0].tolist() == [2.0, 2.0, 1.0]
+    reg.handle(delta(4, [], 0, removed=[1]))
+    reg.handle(delta(3, [1], 0, x=3.0))  # older than the removal: stays removed
+    assert rec.points.ids.tolist() == [0, 2]
+
+
+def test_poses_after_an_alignment_map_back_to_the_own_world():
+    reg = Registry(F)
+    reg.handle(keyframe(0, 0))
+    T_group_agent = se3_exp(np.array([1.0, 0, 0, 0, 0, 0.3]))
+    reg.set_alignment("a", 1, T_group_agent)
+    T_own = se3_exp(np.array([0.1, 0.2, 0, 0, 0.1, 0]))
+    reg.handle(keyframe(1, 1, T=compose(T_group_agent, T_own), epoch=1))
+    np.testing.assert_allclose(reg.agents["a"].keyframes[1].T_own_kf, T_own, atol=1e-12)
+
+
+def test_state_dict_round_trip():
+    reg = Registry(F)
+    reg.handle(keyframe(0, 0))
+    reg.handle(delta(1, [0, 1], 0))
+    reg.handle(delta(2, [4], 9))
+    other = Registry(F)
+    other.load_state_dict(reg.state_dict())
+    a, b = reg.agents["a"], other.agents["a"]
+    assert b.points.ids.tolist() == a.points.ids.tolist() and len(b.pending_points) == 1
+    assert b.seq_floor == 2 and b.keyframes[0].frame_index == 0
