@@ -25,12 +25,15 @@ class Decoders(nn.Module):
         feature_dim: point feature width F (32 in the paper).
         pe_feature: positional-encoding order on features (1 in the paper).
         pe_offset: positional-encoding order on offsets x - p_k (7 in the paper).
-        c_hidden: width of C's hidden layer (256).
+        c_hidden: width of C's hidden layers (256).
         c_out: width of C's output, the per-neighbour feature (256).
-        g_hidden: width of G's hidden layer (256).
+        g_hidden: width of G's hidden layers (256).
         u_hidden: width of U's hidden layers (128).
         u_layers: number of hidden layers of U (2).
         seed: seed of the weight initialisation (the global RNG is left untouched).
+        c_layers: number of hidden layers of C (1 in the paper).
+        g_layers: number of hidden layers of G (1 in the paper).
+        leaky_slope: negative slope of every LeakyReLU (torch's 0.01 by default).
     """
 
     def __init__(
@@ -44,10 +47,14 @@ class Decoders(nn.Module):
         u_hidden: int = 128,
         u_layers: int = 2,
         seed: int = 0,
+        c_layers: int = 1,
+        g_layers: int = 1,
+        leaky_slope: float = 0.01,
     ) -> None:
         super().__init__()
-        if u_layers < 1:
-            raise ValueError(f"Decoders: u_layers must be >= 1, got {u_layers}")
+        if min(u_layers, c_layers, g_layers) < 1:
+            raise ValueError(f"Decoders: c_layers, g_layers and u_layers must be >= 1, got "
+                             f"{c_layers}, {g_layers}, {u_layers}")
         self.feature_dim = feature_dim
         self.pe_feature = pe_feature
         self.pe_offset = pe_offset
@@ -61,16 +68,14 @@ class Decoders(nn.Module):
             # which is the same function at a fraction of the cost.
             self.c_feature = nn.Linear(encoded_dim(feature_dim, pe_feature), c_hidden, bias=False)
             self.c_offset = nn.Linear(encoded_dim(3, pe_offset), c_hidden)
-            self.c_out = nn.Linear(c_hidden, c_out)
-            self.g = nn.Sequential(
-                nn.Linear(c_out, g_hidden), nn.LeakyReLU(), nn.Linear(g_hidden, 1)
+            # Extra hidden layers of C (none in the paper, so its state-dict keys stay put).
+            self.c_mid = nn.ModuleList(
+                nn.Linear(c_hidden, c_hidden) for _ in range(c_layers - 1)
             )
-            u: list[nn.Module] = [nn.Linear(c_out, u_hidden), nn.LeakyReLU()]
-            for _ in range(u_layers - 1):
-                u += [nn.Linear(u_hidden, u_hidden), nn.LeakyReLU()]
-            u.append(nn.Linear(u_hidden, 3))
-            self.u = nn.Sequential(*u)
-        self.act = nn.LeakyReLU()
+            self.c_out = nn.Linear(c_hidden, c_out)
+            self.g = _mlp(c_out, g_hidden, g_layers, 1, leaky_slope)
+            self.u = _mlp(c_out, u_hidden, u_layers, 3, leaky_slope)
+        self.act = nn.LeakyReLU(leaky_slope)
 
     def forward(
         self, features_k: torch.Tensor, offsets: torch.Tensor, valid: torch.Tensor
@@ -98,24 +103,28 @@ class Decoders(nn.Module):
         pair_offset: torch.Tensor,
         pair_sample: torch.Tensor,
         n_samples: int,
+        color: bool = True,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Decode from a flat list of (sample, point) pairs.
 
         point_features: [P, F] features of the points involved; pair_point: [V] int64 rows of
         point_features; pair_offset: [V, 3] x_sample - p_point; pair_sample: [V] int64 sample
         of each pair in [0, n_samples). Returns occupancy [n_samples], colour [n_samples, 3].
+        With color=False, U is skipped and the colour is all zeros (depth-only tracking).
         """
         device = pair_offset.device
         n_pairs = int(pair_sample.numel())
         self.rows_evaluated += n_pairs
         occupancy = torch.zeros(n_samples, device=device, dtype=pair_offset.dtype)
-        color = torch.zeros(n_samples, 3, device=device, dtype=pair_offset.dtype)
         if n_pairs == 0:
-            return occupancy, color
+            return occupancy, torch.zeros(n_samples, 3, device=device, dtype=pair_offset.dtype)
 
         h_point = self.c_feature(positional_encoding(point_features, self.pe_feature))
         h = h_point[pair_point] + self.c_offset(positional_encoding(pair_offset, self.pe_offset))
-        f_pair = self.act(self.c_out(self.act(h)))  # [V, c_out]
+        h = self.act(h)
+        for layer in self.c_mid:
+            h = self.act(layer(h))
+        f_pair = self.act(self.c_out(h))  # [V, c_out]
 
         dist = torch.sqrt((pair_offset * pair_offset).sum(-1) + _DIST_EPS**2)
         w = 1.0 / dist
@@ -124,6 +133,8 @@ class Decoders(nn.Module):
 
         occ_pair = torch.sigmoid(self.g(f_pair)).squeeze(-1)
         occupancy = occupancy.index_add(0, pair_sample, w * occ_pair)
+        if not color:
+            return occupancy, torch.zeros(n_samples, 3, device=device, dtype=pair_offset.dtype)
 
         decoded = (w_sum > 0).nonzero(as_tuple=True)[0]
         self.samples_decoded += int(decoded.numel())
@@ -131,8 +142,17 @@ class Decoders(nn.Module):
             n_samples, f_pair.shape[1], device=device, dtype=f_pair.dtype
         ).index_add(0, pair_sample, w[:, None] * f_pair)
         rgb = torch.sigmoid(self.u(f_sample[decoded]))
-        color = color.index_copy(0, decoded, rgb)
-        return occupancy, color
+        colors = torch.zeros(n_samples, 3, device=device, dtype=rgb.dtype)
+        return occupancy, colors.index_copy(0, decoded, rgb)
+
+
+def _mlp(n_in: int, hidden: int, layers: int, n_out: int, slope: float) -> nn.Sequential:
+    """`layers` hidden Linear + LeakyReLU blocks of width `hidden`, then a Linear to n_out."""
+    blocks: list[nn.Module] = [nn.Linear(n_in, hidden), nn.LeakyReLU(slope)]
+    for _ in range(layers - 1):
+        blocks += [nn.Linear(hidden, hidden), nn.LeakyReLU(slope)]
+    blocks.append(nn.Linear(hidden, n_out))
+    return nn.Sequential(*blocks)
 
 
 class FeatureCNN(nn.Module):

@@ -81,10 +81,16 @@ def render_samples(
     features: torch.Tensor | None = None,
     backend: str = "auto",
     chunk: int | None = None,
+    neighbours: torch.Tensor | None = None,
+    color: bool = True,
 ) -> dict[str, torch.Tensor]:
     """Render R rays at given sample depths t [R, n] (ascending along each ray).
 
     Same arguments and result as `render_rays`, which calls it after sampling.
+    neighbours: [R * n, k] map rows of each sample's neighbours (-1 = none), as returned by
+    `NeuralPointMap.neighbour_index().query`, to skip the search (a tracker that moves the
+    rays by less than a fraction of the radius can reuse one search over several steps).
+    color: False skips the colour decoder (colour comes back as zeros).
     """
     if rays_o.shape != rays_d.shape or rays_o.ndim != 2 or rays_o.shape[1] != 3:
         raise ValueError(f"render: rays_o {tuple(rays_o.shape)} and rays_d "
@@ -97,11 +103,16 @@ def render_samples(
                          f"{point_map.feature_dim}], got {tuple(feats.shape)}")
     xyz = point_map.xyz_world()
     index = point_map.neighbour_index(backend)
-    n_rays = rays_o.shape[0]
+    n_rays, n_per_ray = t.shape
+    if neighbours is not None and neighbours.shape != (n_rays * n_per_ray, k):
+        raise ValueError(f"render: neighbours must be [{n_rays * n_per_ray}, {k}], "
+                         f"got {tuple(neighbours.shape)}")
     step = max(n_rays, 1) if chunk is None else max(1, chunk)
     parts = [
         _render_chunk(xyz, feats, index, decoders, rays_o[i : i + step], rays_d[i : i + step],
-                      t[i : i + step], k, radius)
+                      t[i : i + step], k, radius,
+                      None if neighbours is None
+                      else neighbours[i * n_per_ray : (i + step) * n_per_ray], color)
         for i in range(0, max(n_rays, 1), step)
     ]
     if len(parts) == 1:
@@ -201,11 +212,15 @@ def _render_chunk(
     t: torch.Tensor,
     k: int,
     radius: float,
+    nbr: torch.Tensor | None = None,
+    color: bool = True,
 ) -> dict[str, torch.Tensor]:
     n_rays, n_per_ray = t.shape
     t = t.to(rays_o.device)
     x = (rays_o[:, None, :] + t[..., None] * rays_d[:, None, :]).reshape(-1, 3)  # [S, 3]
-    nbr = index.query(x.detach(), k, radius).to(x.device)  # [S, k]
+    if nbr is None:
+        nbr = index.query(x.detach(), k, radius)
+    nbr = nbr.to(x.device)  # [S, k]
     pair_sample, slot = (nbr >= 0).nonzero(as_tuple=True)
     pair_global = nbr[pair_sample, slot]
     # Features enter C's first layer once per distinct point, not once per pair. The distinct
@@ -216,7 +231,7 @@ def _render_chunk(
     pair_point = (torch.cumsum(used, 0) - 1)[pair_global]
     offsets = x[pair_sample] - xyz[pair_global].to(x.dtype)
     occ, rgb = decoders.forward_pairs(
-        features[points], pair_point, offsets, pair_sample, x.shape[0]
+        features[points], pair_point, offsets, pair_sample, x.shape[0], color
     )
     occ = occ.reshape(n_rays, n_per_ray)
     rgb = rgb.reshape(n_rays, n_per_ray, 3)

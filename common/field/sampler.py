@@ -20,6 +20,9 @@ class RaySampler:
         near_band: relative half-width of both ranges (0.05 in the paper).
         min_depth: lower end of the range for pixels without depth (D_l = 0.001 m).
         perturb: draw jittered positions (training); False puts samples at bin centres.
+        near_lo, near_hi, far_hi: the factors of an asymmetric band (near samples in
+            [near_lo D, near_hi D], uniform ones in [near_lo D_min, far_hi D_max]); each
+            left out is 1 -/+ near_band.
     """
 
     def __init__(
@@ -29,10 +32,19 @@ class RaySampler:
         near_band: float = 0.05,
         min_depth: float = 0.001,
         perturb: bool = True,
+        near_lo: float | None = None,
+        near_hi: float | None = None,
+        far_hi: float | None = None,
     ) -> None:
         if n_near < 0 or n_uniform < 0 or n_near + n_uniform < 1:
             raise ValueError(f"RaySampler: need n_near, n_uniform >= 0 with a positive sum, "
                              f"got {n_near}, {n_uniform}")
+        self.near_lo = 1.0 - near_band if near_lo is None else float(near_lo)
+        self.near_hi = 1.0 + near_band if near_hi is None else float(near_hi)
+        self.far_hi = self.near_hi if far_hi is None else float(far_hi)
+        if not 0.0 < self.near_lo < self.near_hi or self.far_hi < self.near_lo:
+            raise ValueError(f"RaySampler: need 0 < near_lo < near_hi and far_hi >= near_lo, got "
+                             f"{self.near_lo}, {self.near_hi}, {self.far_hi}")
         self.n_near = n_near
         self.n_uniform = n_uniform
         self.near_band = near_band
@@ -73,13 +85,13 @@ class RaySampler:
             if not 0 < d_min <= d_max:
                 raise ValueError(f"RaySampler: depth_range must satisfy 0 < D_min <= D_max, "
                                  f"got {depth_range}")
-        lo, hi = 1.0 - self.near_band, 1.0 + self.near_band
+        lo, hi = self.near_lo, self.near_hi
         u = self._jitter(n_rays, generator, depth_obs.device)  # [R, N]
 
         # Rays with depth: n_near around D, n_uniform over the batch range.
         near = self._stratified(lo * depth_obs, hi * depth_obs, u[:, : self.n_near])
         uni_lo = torch.full_like(depth_obs, lo * d_min)
-        uni_hi = torch.full_like(depth_obs, hi * d_max)
+        uni_hi = torch.full_like(depth_obs, self.far_hi * d_max)
         uni = self._stratified(uni_lo, uni_hi, u[:, self.n_near :])
         t_depth, _ = torch.sort(torch.cat((near, uni), dim=1), dim=1)
 

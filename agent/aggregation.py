@@ -1,0 +1,119 @@
+"""Pooling a local feature map [B, C, h, w] into one global descriptor: NetVLAD and GeM.
+
+NetVLAD (Arandjelovic et al., CVPR 2016) soft-assigns each L2-normalised local feature to K
+cluster centres and sums the residuals per centre; intra-normalisation then a global L2 norm.
+Untrained, the soft assignment is the one NetVLAD is initialised with: a 1x1 convolution with
+weight 2·alpha·c_k and bias -alpha·|c_k|², i.e. a softmax over -alpha·|x - c_k|² (the |x|² term
+cancels). GeM (Radenovic et al., TPAMI 2018) is the generalised mean (mean x^p)^(1/p) per channel.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+__all__ = ["GeM", "NetVLAD", "assignment_alpha", "kmeans"]
+
+
+class NetVLAD(nn.Module):
+    """NetVLAD layer: [B, C, h, w] -> [B, K * C], L2-normalised.
+
+    `centroids` [K, C]; the assignment convolution is either given (`conv_weight` [K, C],
+    `conv_bias` [K], as a trained layer has them) or derived from the centroids with `alpha`.
+    """
+
+    def __init__(
+        self,
+        centroids: torch.Tensor,
+        alpha: float | None = None,
+        conv_weight: torch.Tensor | None = None,
+        conv_bias: torch.Tensor | None = None,
+    ) -> None:
+        super().__init__()
+        centroids = centroids.detach().float()
+        if centroids.ndim != 2:
+            raise ValueError(f"centroids: expected [K, C], got shape {tuple(centroids.shape)}")
+        if conv_weight is None:
+            if alpha is None:
+                raise ValueError("NetVLAD needs either conv_weight/conv_bias or alpha")
+            conv_weight = 2.0 * alpha * centroids
+            conv_bias = -alpha * (centroids**2).sum(dim=1)
+        elif conv_bias is None:
+            conv_bias = torch.zeros(centroids.shape[0])
+        conv_weight = conv_weight.detach().float().reshape(centroids.shape)
+        self.register_buffer("centroids", centroids)
+        self.register_buffer("conv_weight", conv_weight)
+        self.register_buffer("conv_bias", conv_bias.detach().float().reshape(-1))
+
+    @property
+    def clusters(self) -> int:
+        return int(self.centroids.shape[0])
+
+    @property
+    def dim(self) -> int:
+        return int(self.centroids.numel())
+
+    def forward(self, feat: torch.Tensor) -> torch.Tensor:
+        x = F.normalize(feat.flatten(2), dim=1)  # [B, C, N]
+        logits = torch.einsum("kc,bcn->bkn", self.conv_weight, x) + self.conv_bias[None, :, None]
+        soft = logits.softmax(dim=1)  # [B, K, N]
+        # sum_n a_kn (x_n - c_k) = sum_n a_kn x_n - c_k sum_n a_kn
+        vlad = torch.einsum("bkn,bcn->bkc", soft, x) - soft.sum(dim=2)[..., None] * self.centroids
+        vlad = F.normalize(vlad, dim=2)  # intra-normalisation
+        return F.normalize(vlad.flatten(1), dim=1)
+
+
+class GeM(nn.Module):
+    """Generalised-mean pooling: [B, C, h, w] -> [B, C], L2-normalised."""
+
+    def __init__(self, p: float = 3.0, eps: float = 1e-6) -> None:
+        super().__init__()
+        if p <= 0:
+            raise ValueError(f"GeM p must be positive, got {p}")
+        self.p = float(p)
+        self.eps = eps
+
+    def forward(self, feat: torch.Tensor) -> torch.Tensor:
+        pooled = feat.clamp_min(self.eps).pow(self.p).mean(dim=(2, 3)).pow(1.0 / self.p)
+        return F.normalize(pooled, dim=1)
+
+
+def kmeans(x: torch.Tensor, k: int, seed: int = 0, iters: int = 30) -> torch.Tensor:
+    """Centres [k, C] of points x [N, C] by k-means++ seeding and Lloyd iterations (float64).
+
+    Deterministic for a given input and seed; float64 so that tiny backbone differences between
+    machines rarely change an assignment.
+    """
+    if x.ndim != 2 or x.shape[0] < k:
+        raise ValueError(f"kmeans: need at least k={k} points [N, C], got {tuple(x.shape)}")
+    x = x.double()
+    gen = torch.Generator().manual_seed(seed)
+    centres = [x[torch.randint(x.shape[0], (1,), generator=gen)].squeeze(0)]
+    d2 = ((x - centres[0]) ** 2).sum(dim=1)
+    for _ in range(1, k):
+        pick = torch.multinomial(d2 / d2.sum(), 1, generator=gen)
+        centres.append(x[pick].squeeze(0))
+        d2 = torch.minimum(d2, ((x - centres[-1]) ** 2).sum(dim=1))
+    c = torch.stack(centres)
+    for _ in range(iters):
+        assign = torch.cdist(x, c).argmin(dim=1)
+        counts = torch.bincount(assign, minlength=k).double()
+        sums = torch.zeros_like(c).index_add_(0, assign, x)
+        # An emptied cluster keeps its previous centre rather than collapsing to zero.
+        c_new = torch.where(counts[:, None] > 0, sums / counts.clamp_min(1)[:, None], c)
+        if torch.allclose(c_new, c, atol=1e-9):
+            break
+        c = c_new
+    return c.float()
+
+
+def assignment_alpha(x: torch.Tensor, centroids: torch.Tensor, ratio: float = 0.01) -> float:
+    """NetVLAD's initial softness: the mean gap between the nearest and second-nearest squared
+    distance makes the second centre's weight `ratio` times the first's, on average."""
+    d2 = torch.cdist(x.double(), centroids.double()) ** 2
+    two = d2.topk(2, dim=1, largest=False).values
+    gap = (two[:, 1] - two[:, 0]).mean().item()
+    return -math.log(ratio) / max(gap, 1e-12)

@@ -1,0 +1,402 @@
+"""The agent's side of the collaboration, independent of the transport.
+
+`AgentLink` sits next to an `Odometry`. After every ``odometry.step`` it turns what happened
+into protocol messages (keyframes with descriptors, sub-map deltas of the agent's OWN points,
+batched frame poses, decoder weights for federated rounds), numbers them with one counter
+(``seq`` from 0) and keeps each in an outbox until an `Ack` covers it. Between frames it
+applies what the server pushed:
+
+- `ServerUpdate`: the whole local world moves into the group frame (keyframe poses in the
+  map's pose table, so every point moves with its keyframe; the keyframe store; the
+  trajectory, whose last poses seed the tracker), corrected keyframe poses replace the agent's
+  own (frames follow their keyframe), and the other members' points join the local map;
+- `GroupDecoder`: the shared weights replace the decoders (the mapper builds its Adam afresh at
+  every call, so there is no optimiser state to reset) and the round is remembered;
+- `KeyframeImageRequest`: answered from the keyframe store (its downsampled RGB-D copy).
+
+Agent keys of the neural point map: the agent's own points and keyframes keep the odometry's
+int id (``odometry.agent_id``); every other agent gets a local int on first sight, counting up
+from ``own + 1`` in the order the sources appear. The mapping is local to this agent.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import OrderedDict
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import torch
+
+from cpslam.common.geometry import compose, invert
+from cpslam.protocol import (
+    Ack,
+    DecoderWeights,
+    ErrorReply,
+    ForeignPoints,
+    FramePoses,
+    GroupDecoder,
+    KeyframeImage,
+    KeyframeImageRequest,
+    KeyframeMsg,
+    Message,
+    ServerUpdate,
+    SubmapDelta,
+)
+
+if TYPE_CHECKING:
+    from cpslam.agent.odometry import FrameResult, Odometry
+    from cpslam.common.datasets import RGBDFrame
+
+__all__ = ["AgentLink"]
+
+logger = logging.getLogger(__name__)
+
+Describe = Callable[[np.ndarray], np.ndarray]
+
+
+class AgentLink:
+    """Messages out of one agent's odometry, and the server's answers applied to it.
+
+    Args:
+        agent_id: the agent's protocol id (also its initial group id).
+        odometry: the agent's `Odometry` (its point map, decoders, keyframes and trajectory are
+            read and, on server updates, changed).
+        describe: ``rgb uint8 [H, W, 3] -> unit float32 [D]`` global descriptor of a keyframe
+            (e.g. ``DescriptorExtractor.compute``).
+        frames_every: frame poses are sent in batches of this many frames (and at keyframes).
+        round_every_mappings: decoder weights are sent every this many mapping calls.
+        federation: send decoder weights at all.
+        image_codec, jpeg_quality: how keyframe colour images are compressed for the server.
+    """
+
+    def __init__(
+        self,
+        agent_id: str,
+        odometry: Odometry,
+        describe: Describe,
+        frames_every: int = 10,
+        round_every_mappings: int = 5,
+        federation: bool = True,
+        image_codec: str = "jpeg",
+        jpeg_quality: int = 90,
+    ) -> None:
+        if frames_every < 1 or round_every_mappings < 1:
+            raise ValueError(f"AgentLink: frames_every and round_every_mappings must be >= 1, "
+                             f"got {frames_every}, {round_every_mappings}")
+        self.agent_id = agent_id
+        self.odometry = odometry
+        self.describe = describe
+        self.frames_every, self.round_every_mappings = frames_every, round_every_mappings
+        self.federation = federation
+        self.image_codec, self.jpeg_quality = image_codec, jpeg_quality
+        self.own = int(odometry.agent_id)
+        self.group_id = agent_id
+        self.group_members = [agent_id]
+        self.epoch = 0
+        self.round = 0
+        self.T_group_agent = np.eye(4)
+        self.update_seq = 0
+        self.acked = -1
+        self.outbox: OrderedDict[int, Message] = OrderedDict()
+        self.foreign_index: dict[str, int] = {}
+        self.stats = {"updates": 0, "decoders": 0, "foreign_points": 0, "images": 0}
+        self._seq = 0
+        self._frame_kf: list[int] = []  # keyframe each trajectory entry is expressed against
+        self._pending_frames: list[tuple[int, float, int, np.ndarray]] = []
+        self._sent_ids = np.zeros(0, np.int64)  # sorted
+        self._sent_features = np.zeros((0, odometry.point_map.feature_dim), np.float16)
+        self._mappings = 0
+        self._samples = 0
+        self._decoders_waiting: dict[str, GroupDecoder] = {}
+
+    # ------------------------------------------------------------------------- outgoing
+
+    def after_step(self, frame: RGBDFrame, result: FrameResult) -> list[Message]:
+        """Messages for one processed frame (`frame` at the processing resolution)."""
+        out: list[Message] = []
+        kf = self.odometry.keyframes.latest
+        assert kf is not None  # frame 0 is always a keyframe
+        self._frame_kf.append(kf.kf_id)
+        T_kf_frame = _rigid(compose(invert(kf.T_world_cam), result.T_world_cam))
+        self._pending_frames.append((result.index, result.timestamp, kf.kf_id, T_kf_frame))
+        if result.is_keyframe:
+            out.append(self._keyframe_msg(frame, result))
+        if result.map_steps > 0:
+            first = self.odometry.n_frames == 1
+            pixels = self.odometry.n_pixels_first if first else self.odometry.n_pixels
+            self._samples += result.map_steps * pixels
+            self._mappings += 1
+            delta = self._submap_delta()
+            if delta is not None:
+                out.append(delta)
+            if self.federation and self._mappings >= self.round_every_mappings:
+                out.append(self._decoder_weights())
+        if result.is_keyframe or len(self._pending_frames) >= self.frames_every:
+            out += self.flush()
+        return out
+
+    def flush(self) -> list[Message]:
+        """The frame poses not sent yet (call at the end of the stream)."""
+        if not self._pending_frames:
+            return []
+        idx, stamps, kfs, T = zip(*self._pending_frames, strict=True)
+        self._pending_frames = []
+        return [self._stamp(FramePoses(
+            agent_id=self.agent_id, seq=0, frame_indices=np.asarray(idx, np.int64),
+            stamps=np.asarray(stamps, np.float64), kf_ids=np.asarray(kfs, np.int32),
+            T_kf_frame=np.stack(T)))]
+
+    def on_ack(self, ack: Ack) -> int:
+        """Forget every message the ack covers; returns how many left the outbox."""
+        if ack.agent_id != self.agent_id:
+            return 0
+        self.acked = max(self.acked, int(ack.seq))
+        covered = [s for s in self.outbox if s <= self.acked]
+        for s in covered:
+            del self.outbox[s]
+        return len(covered)
+
+    def unacked(self) -> list[Message]:
+        """Messages sent but not acknowledged yet, oldest first (to resend on reconnect)."""
+        return list(self.outbox.values())
+
+    @property
+    def next_seq(self) -> int:
+        """The seq the next message gets."""
+        return self._seq
+
+    def _stamp(self, msg: Message) -> Message:
+        msg = msg.model_copy(update={"seq": self._seq})
+        self.outbox[self._seq] = msg
+        self._seq += 1
+        return msg
+
+    def _keyframe_msg(self, frame: RGBDFrame, result: FrameResult) -> KeyframeMsg:
+        store = self.odometry.keyframes
+        ids = store.ids()
+        kf = store.get(result.kf_id)
+        T_prev = None
+        if len(ids) > 1:
+            T_prev = compose(invert(store.get(ids[-2]).T_world_cam), kf.T_world_cam)
+        descriptor = np.asarray(self.describe(frame.rgb), np.float32)
+        return self._stamp(KeyframeMsg(
+            agent_id=self.agent_id, seq=0, kf_id=kf.kf_id, frame_index=kf.frame_index,
+            stamp=kf.timestamp, world_epoch=self.epoch, T_world_cam=kf.T_world_cam,
+            T_prev_kf_kf=T_prev, descriptor=descriptor / np.linalg.norm(descriptor),
+            n_points=len(kf.point_ids)))
+
+    def _submap_delta(self) -> SubmapDelta | None:
+        """Own points that are new or whose (float16) features changed since the last delta,
+        and own points that disappeared."""
+        pm = self.odometry.point_map
+        rows = (pm.agent_id == self.own).nonzero(as_tuple=True)[0]
+        ids = pm.point_id[rows].cpu().numpy()
+        order = np.argsort(ids)
+        ids, rows = ids[order], rows[torch.from_numpy(order).to(rows.device)]
+        feats = pm.features.detach()[rows].cpu().numpy().astype(np.float16)
+        known = np.zeros(len(ids), bool)
+        pos = np.zeros(len(ids), np.int64)
+        if len(self._sent_ids) and len(ids):
+            pos = np.minimum(np.searchsorted(self._sent_ids, ids), len(self._sent_ids) - 1)
+            known = self._sent_ids[pos] == ids
+        changed = ~known
+        if known.any():
+            changed[known] = (self._sent_features[pos[known]] != feats[known]).any(axis=1)
+        removed = np.setdiff1d(self._sent_ids, ids)
+        self._sent_ids, self._sent_features = ids, feats
+        if not changed.any() and not len(removed):
+            return None
+        sel = torch.from_numpy(np.nonzero(changed)[0]).to(rows.device)
+        r = rows[sel]
+        return self._stamp(SubmapDelta(
+            agent_id=self.agent_id, seq=0, point_ids=ids[changed],
+            anchor_kf_ids=pm.anchor_kf[r].cpu().numpy().astype(np.int32),
+            xyz_local=pm.xyz_local[r].detach().cpu().numpy().astype(np.float32),
+            features=feats[changed], colors=pm.color[r].cpu().numpy().astype(np.uint8),
+            removed_ids=removed.astype(np.int64)))
+
+    def _decoder_weights(self) -> DecoderWeights:
+        tensors = {k: v.detach().cpu().numpy().astype(np.float32)
+                   for k, v in self.odometry.decoders.state_dict().items()}
+        msg = DecoderWeights(agent_id=self.agent_id, seq=0, group_id=self.group_id,
+                             round=self.round, n_samples=self._samples, tensors=tensors)
+        self._mappings, self._samples = 0, 0
+        return self._stamp(msg)
+
+    # ------------------------------------------------------------------------- incoming
+
+    def apply_update(self, update: ServerUpdate) -> bool:
+        """Move into the group frame, take corrected poses and foreign points (between
+        frames). Returns False for an update that is not for this agent or is stale."""
+        if update.agent_id != self.agent_id or update.seq <= self.update_seq:
+            logger.debug("agent %s: ignoring server update seq %d", self.agent_id, update.seq)
+            return False
+        self.update_seq = int(update.seq)
+        T_new_old = compose(update.T_group_agent, invert(self.T_group_agent))
+        if not np.allclose(T_new_old, np.eye(4), atol=1e-12):
+            self._transform_world(T_new_old)
+        self.T_group_agent = np.asarray(update.T_group_agent, np.float64).copy()
+        if update.group_id != self.group_id:
+            self.round = 0  # rounds count per group: the new group's next decoder is newer
+        self.epoch, self.group_id = int(update.epoch), update.group_id
+        self.group_members = list(update.group_members)
+        self._correct_keyframes(dict(zip(update.kf_ids.tolist(), update.T_group_kf,
+                                         strict=True)))
+        added = sum(self._merge_foreign(block) for block in update.foreign)
+        if added:
+            self.odometry.mark_fused()
+        self.stats["updates"] += 1
+        logger.info("agent %s: update %d (group %s, epoch %d, %d keyframes corrected, %d "
+                    "foreign points)", self.agent_id, update.seq, self.group_id, self.epoch,
+                    len(update.kf_ids), added)
+        waiting = self._decoders_waiting.pop(self.group_id, None)
+        if waiting is not None:
+            self.apply_decoder(waiting)
+        return True
+
+    def apply_decoder(self, msg: GroupDecoder) -> bool:
+        """Load a newer shared decoder of this agent's group; one of another group is kept in
+        case this agent joins that group later. Returns True when loaded."""
+        if msg.group_id != self.group_id:
+            held = self._decoders_waiting.get(msg.group_id)
+            if held is None or msg.round > held.round:
+                self._decoders_waiting[msg.group_id] = msg
+            return False
+        if msg.round <= self.round:
+            return False
+        decoders = self.odometry.decoders
+        device = next(iter(decoders.state_dict().values())).device
+        decoders.load_state_dict({k: torch.as_tensor(v, device=device)
+                                  for k, v in msg.tensors.items()})
+        self.round = int(msg.round)
+        self._mappings, self._samples = 0, 0
+        self.stats["decoders"] += 1
+        logger.info("agent %s: shared decoder %s#%d loaded", self.agent_id, msg.group_id,
+                    msg.round)
+        return True
+
+    def answer_image(self, request: KeyframeImageRequest) -> KeyframeImage | ErrorReply:
+        """The keyframe's stored (downsampled) RGB-D copy with its intrinsics."""
+        store = self.odometry.keyframes
+        if request.agent_id != self.agent_id or request.kf_id not in store:
+            return ErrorReply(code="not_found", reason=f"agent {self.agent_id} has no keyframe "
+                              f"{request.agent_id}/{request.kf_id}")
+        kf = store.get(request.kf_id)
+        intr = store.intrinsics_small
+        self.stats["images"] += 1
+        return KeyframeImage.from_metres(
+            kf.depth_small if request.want_depth else None, depth_scale=1000.0,
+            agent_id=self.agent_id, kf_id=kf.kf_id, fx=intr.fx, fy=intr.fy, cx=intr.cx,
+            cy=intr.cy, width=intr.width, height=intr.height, rgb_codec=self.image_codec,
+            jpeg_quality=self.jpeg_quality, rgb=kf.rgb_small if request.want_rgb else None)
+
+    # ------------------------------------------------------------------------- internals
+
+    def _transform_world(self, T_new_old: np.ndarray) -> None:
+        """Every pose the agent holds, left-multiplied by T_new_old."""
+        pm = self.odometry.point_map
+        keys = pm.kf_keys.cpu().numpy()
+        poses = pm.kf_poses.cpu().numpy()
+        for agent in np.unique(keys[:, 0]) if len(keys) else []:
+            sel = keys[:, 0] == agent
+            moved = np.stack([_rigid(T_new_old @ T) for T in poses[sel]])
+            pm.set_keyframe_poses(keys[sel, 1], moved, int(agent))
+        for kf in self.odometry.keyframes:
+            self.odometry.keyframes.set_pose(kf.kf_id, _rigid(T_new_old @ kf.T_world_cam))
+        _set_trajectory(self.odometry, [T_new_old @ T for T in _trajectory(self.odometry)])
+
+    def _correct_keyframes(self, corrected: dict[int, np.ndarray]) -> None:
+        """Own keyframes take the corrected poses; a keyframe the server has not seen yet
+        follows the correction of the one before it, and every frame that of its keyframe."""
+        delta: dict[int, np.ndarray] = {}
+        last = np.eye(4)
+        store = self.odometry.keyframes
+        for kf in store:
+            if kf.kf_id in corrected:
+                last = compose(corrected[kf.kf_id], invert(kf.T_world_cam))
+            delta[kf.kf_id] = last
+        if not delta:
+            return
+        ids = list(delta)
+        for kf_id in ids:
+            store.set_pose(kf_id, _rigid(delta[kf_id] @ store.get(kf_id).T_world_cam))
+        self.odometry.point_map.set_keyframe_poses(
+            ids, np.stack([store.get(k).T_world_cam for k in ids]), self.own)
+        poses = _trajectory(self.odometry)
+        _set_trajectory(self.odometry, [delta[k] @ T for k, T in zip(self._frame_kf, poses,
+                                                                      strict=True)])
+
+    def _merge_foreign(self, block: ForeignPoints) -> int:
+        """Add (or replace) another member's points; returns how many were added."""
+        pm = self.odometry.point_map
+        if block.point_ids.size and block.features.shape[1] != pm.feature_dim:
+            logger.warning("agent %s: foreign points of %s have %d features, the map %d; "
+                           "dropped", self.agent_id, block.source_agent_id,
+                           block.features.shape[1], pm.feature_dim)
+            return 0
+        key = self.foreign_index.setdefault(
+            block.source_agent_id, max([self.own, *self.foreign_index.values()]) + 1)
+        if len(block.kf_ids):
+            pm.set_keyframe_poses(block.kf_ids.astype(np.int64), block.T_group_kf, key)
+        if block.removed_ids.size:
+            pm.remove(torch.from_numpy(block.removed_ids), key)
+        if not block.point_ids.size:
+            return 0
+        pm.remove(torch.from_numpy(block.point_ids), key)
+        anchored = np.array([pm.has_keyframe(int(k), key) for k in block.anchor_kf_ids], bool)
+        if not anchored.all():
+            logger.warning("agent %s: %d foreign points of %s anchored to unknown keyframes; "
+                           "dropped", self.agent_id, int((~anchored).sum()),
+                           block.source_agent_id)
+        n = int(anchored.sum())
+        if n:
+            _append_points(pm, key, block.point_ids[anchored],
+                           block.anchor_kf_ids[anchored].astype(np.int64),
+                           block.xyz_local[anchored], block.features[anchored],
+                           block.colors[anchored])
+            self.stats["foreign_points"] += n
+        return n
+
+
+def _trajectory(odometry: Odometry) -> list[np.ndarray]:
+    return list(odometry._poses)  # noqa: SLF001 - see _set_trajectory
+
+
+def _set_trajectory(odometry: Odometry, poses: list[np.ndarray]) -> None:
+    # Odometry has no public setter for its poses yet; the tracker starts from the last ones,
+    # so they must follow the world when the server moves it.
+    odometry._poses = [_rigid(T) for T in poses]  # noqa: SLF001
+
+
+def _rigid(T: np.ndarray) -> np.ndarray:
+    """T with its rotation projected back onto SO(3): repeated corrections must not let
+    rounding drift build up in poses that are sent on (receivers check rigidity)."""
+    T = np.array(T, np.float64)
+    u, _, vt = np.linalg.svd(T[:3, :3])
+    T[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+    T[3] = (0.0, 0.0, 0.0, 1.0)
+    return T
+
+
+def _append_points(pm: Any, agent: int, ids: np.ndarray, anchors: np.ndarray,
+                   xyz_local: np.ndarray, features: np.ndarray, colors: np.ndarray) -> None:
+    """Append points given in their anchors' frames (no grid filter: the server only sends
+    points in cells the receiver's own points leave free)."""
+    state = pm.state_dict()
+    n = len(ids)
+    extra = {
+        "anchor_kf": torch.from_numpy(anchors.astype(np.int64)),
+        "xyz_local": torch.from_numpy(xyz_local.astype(np.float32)),
+        "features": torch.from_numpy(features.astype(np.float32)),
+        "agent_id": torch.full((n,), agent, dtype=torch.int32),
+        "point_id": torch.from_numpy(ids.astype(np.int64)),
+        "color": torch.from_numpy(colors.astype(np.uint8)),
+    }
+    for name, value in extra.items():
+        state[name] = torch.cat((state[name], value))
+    nxt = {int(a): int(v) for a, v in state["next_point_id"].tolist()}
+    nxt[agent] = max(nxt.get(agent, 0), int(ids.max()) + 1)
+    state["next_point_id"] = torch.tensor(sorted(nxt.items()), dtype=torch.int64).reshape(-1, 2)
+    pm.load_state_dict(state, source="foreign points")

@@ -1,0 +1,260 @@
+"""Mapping: grow the neural point map where a frame is not yet explained, then optimise point
+features and decoders on pixels of the current frame and its co-visible keyframes.
+
+New points come from the centre pixel of every patch (`field.patch_size`), back-projected with
+the frame's pose; a candidate is kept when the map does not explain it yet (no existing point
+within the search radius, or, with `add_points_depth_err`, a rendered depth off by more than
+that), and the map's grid filter then keeps at most one point per cell. Features of new points
+come from the untrained CNN, colours from the image.
+
+The optimisation runs Adam over the decoders and over the features of the points that can be
+seen from the views taking part (points elsewhere keep their features and get no optimiser
+state); the feature learning rate decays as lr * decay ** (step / decay_steps) from the start
+of every call, as in the paper. The loss is the depth L1 plus colour_weight times the colour
+L1 (mean over pixels and channels, colours in [0, 1]) on pixels with valid depth, drawn afresh
+at every step and shared equally among the views.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import nn
+
+from cpslam.common.camera import Intrinsics
+from cpslam.common.field import (
+    Decoders,
+    FeatureCNN,
+    NeuralPointMap,
+    RaySampler,
+    camera_rays,
+    patch_points,
+    render_rays,
+)
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["MapResult", "Mapper", "View"]
+
+
+@dataclass
+class View:
+    """One image taking part in mapping: the current frame or a keyframe's small copy.
+
+    rgb: float32 [h, w, 3] in [0, 1]; depth: float32 [h, w] metres (0 = invalid), both on the
+    map's device; T_world_cam: [4, 4] float64; intrinsics: of this image's size.
+    """
+
+    rgb: torch.Tensor
+    depth: torch.Tensor
+    T_world_cam: np.ndarray
+    intrinsics: Intrinsics
+
+    def __post_init__(self) -> None:
+        if tuple(self.depth.shape) != self.intrinsics.shape or \
+                tuple(self.rgb.shape) != (*self.intrinsics.shape, 3):
+            raise ValueError(f"View: rgb {tuple(self.rgb.shape)} / depth "
+                             f"{tuple(self.depth.shape)} do not match the intrinsics' "
+                             f"{self.intrinsics.shape}")
+        self.valid = (self.depth.reshape(-1) > 0).nonzero(as_tuple=True)[0]
+
+
+@dataclass
+class MapResult:
+    """One optimisation call: steps run, loss of the first and last step, seconds."""
+
+    steps: int
+    loss_first: float
+    loss_last: float
+    seconds: float
+
+
+class Mapper:
+    """Point insertion and feature/decoder optimisation.
+
+    Args:
+        sampler: ray sampler.
+        lr_decoders, lr_features: Adam learning rates.
+        feature_lr_decay, feature_lr_decay_steps: feature lr decay (reset every call).
+        color_weight: weight of the colour L1 term.
+        patch_size: new points from the centre of every patch_size x patch_size block.
+        add_points_depth_err: None = add where no point is within radius; a number = add where
+            the rendered depth is off by more than this (m).
+        k, radius, backend, chunk: rendering (neighbours, search radius, search backend, rays
+            per pass).
+    """
+
+    def __init__(
+        self,
+        sampler: RaySampler,
+        lr_decoders: float = 0.003,
+        lr_features: float = 0.005,
+        feature_lr_decay: float = 0.1,
+        feature_lr_decay_steps: int = 10000,
+        color_weight: float = 0.2,
+        patch_size: int = 4,
+        add_points_depth_err: float | None = None,
+        k: int = 8,
+        radius: float = 0.15,
+        backend: str = "auto",
+        chunk: int | None = None,
+    ) -> None:
+        self.sampler = sampler
+        self.lr_decoders, self.lr_features = lr_decoders, lr_features
+        self.feature_lr_decay = feature_lr_decay
+        self.feature_lr_decay_steps = feature_lr_decay_steps
+        self.color_weight = color_weight
+        self.patch_size = patch_size
+        self.add_points_depth_err = add_points_depth_err
+        self.k, self.radius, self.backend, self.chunk = k, radius, backend, chunk
+
+    # --------------------------------------------------------------------------- new points
+
+    def add_points(
+        self,
+        point_map: NeuralPointMap,
+        decoders: Decoders,
+        cnn: FeatureCNN,
+        rgb: np.ndarray,
+        depth: np.ndarray,
+        intrinsics: Intrinsics,
+        T_world_cam: np.ndarray,
+        anchor_kf: int,
+        generator: torch.Generator | None = None,
+    ) -> torch.Tensor:
+        """Add the frame's unexplained patch centres, anchored to keyframe `anchor_kf` (already
+        in the map's pose table). rgb uint8 [H, W, 3], depth float32 [H, W]. Returns the ids of
+        the points added, int64 [M]."""
+        xyz, features, colors = patch_points(rgb, depth, intrinsics, T_world_cam, cnn,
+                                             patch=self.patch_size)
+        if len(xyz) and len(point_map):
+            keep = self._unexplained(point_map, decoders, xyz, intrinsics, T_world_cam,
+                                     generator)
+            xyz, features, colors = xyz[keep], features[keep], colors[keep]
+        return point_map.add_points(xyz, anchor_kf, features, colors)
+
+    @torch.no_grad()
+    def _unexplained(
+        self,
+        point_map: NeuralPointMap,
+        decoders: Decoders,
+        xyz_world: torch.Tensor,
+        intrinsics: Intrinsics,
+        T_world_cam: np.ndarray,
+        generator: torch.Generator | None,
+    ) -> torch.Tensor:
+        """bool [M]: candidates the map does not explain yet."""
+        index = point_map.neighbour_index(self.backend)
+        if self.add_points_depth_err is None:
+            return index.query(xyz_world, 1, self.radius)[:, 0] < 0
+        # Render the candidates' own pixels (projected back from their positions) and compare
+        # the expected depth with the observed one.
+        T = torch.as_tensor(T_world_cam, dtype=torch.float64, device=xyz_world.device)
+        cam = (xyz_world.double() - T[:3, 3]) @ T[:3, :3]
+        z = cam[:, 2]
+        u = cam[:, 0] / z * intrinsics.fx + intrinsics.cx
+        v = cam[:, 1] / z * intrinsics.fy + intrinsics.cy
+        rays_o, rays_d = camera_rays(intrinsics, T, u, v)
+        out = render_rays(point_map, decoders, rays_o, rays_d, z.float(), self.sampler,
+                          generator, self.k, self.radius, backend=self.backend,
+                          chunk=self.chunk)
+        return (out["depth"] - z.float()).abs() > self.add_points_depth_err
+
+    # --------------------------------------------------------------------------- optimising
+
+    def optimise(
+        self,
+        point_map: NeuralPointMap,
+        decoders: Decoders,
+        views: list[View],
+        iters: int,
+        n_pixels: int,
+        generator: torch.Generator,
+    ) -> MapResult:
+        """Optimise features (of the points seen by `views`) and decoders for `iters` steps
+        on `n_pixels` pixels per step. Returns the first and last step's loss."""
+        start = time.perf_counter()
+        views = [view for view in views if len(view.valid)]
+        if iters < 1 or not views or len(point_map) == 0:
+            return MapResult(0, math.nan, math.nan, time.perf_counter() - start)
+        rows = self._rows_in_view(point_map, views)
+        active = nn.Parameter(point_map.features.detach()[rows].clone())
+        optimiser = torch.optim.Adam([
+            {"params": list(decoders.parameters()), "lr": self.lr_decoders},
+            {"params": [active], "lr": self.lr_features},
+        ])
+        share = _split(n_pixels, len(views))
+        first = last = math.nan
+        for it in range(iters):
+            optimiser.param_groups[1]["lr"] = self.lr_features * self.feature_lr_decay ** (
+                it / self.feature_lr_decay_steps)
+            rays_o, rays_d, depth_obs, color_obs = _batch(views, share, generator)
+            features = point_map.features.detach().index_copy(0, rows, active)
+            out = render_rays(point_map, decoders, rays_o, rays_d, depth_obs, self.sampler,
+                              generator, self.k, self.radius, features=features,
+                              backend=self.backend, chunk=self.chunk)
+            loss = (out["depth"] - depth_obs).abs().mean()
+            if self.color_weight > 0:
+                loss = loss + self.color_weight * (out["color"] - color_obs).abs().mean()
+            optimiser.zero_grad(set_to_none=True)
+            loss.backward()
+            optimiser.step()
+            last = float(loss.detach())
+            if it == 0:
+                first = last
+        point_map.set_features(rows, active)
+        seconds = time.perf_counter() - start
+        logger.debug("mapping: %d steps over %d views, %d active points, loss %.4f -> %.4f "
+                     "(%.2f s)", iters, len(views), len(rows), first, last, seconds)
+        return MapResult(iters, first, last, seconds)
+
+    def _rows_in_view(self, point_map: NeuralPointMap, views: list[View]) -> torch.Tensor:
+        """Rows of the points whose neighbourhood (radius) reaches into any of the views."""
+        xyz = point_map.xyz_world().double()
+        seen = torch.zeros(len(xyz), dtype=torch.bool, device=xyz.device)
+        for view in views:
+            intr = view.intrinsics
+            T = torch.as_tensor(view.T_world_cam, dtype=torch.float64, device=xyz.device)
+            cam = (xyz - T[:3, 3]) @ T[:3, :3]
+            z = cam[:, 2]
+            zs = z.clamp(min=1e-6)
+            # A point up to one radius outside the frustum still shapes border pixels.
+            mu = self.radius * intr.fx / zs
+            mv = self.radius * intr.fy / zs
+            u = intr.fx * cam[:, 0] / zs + intr.cx
+            v = intr.fy * cam[:, 1] / zs + intr.cy
+            seen |= (z > -self.radius) & (u > -0.5 - mu) & (u < intr.width - 0.5 + mu) \
+                & (v > -0.5 - mv) & (v < intr.height - 0.5 + mv)
+        return seen.nonzero(as_tuple=True)[0]
+
+
+def _split(n: int, parts: int) -> list[int]:
+    """n pixels shared among `parts` views as evenly as possible (the first gets the rest)."""
+    base = max(1, n // parts)
+    return [base + (n - base * parts if i == 0 and n > base * parts else 0)
+            for i in range(parts)]
+
+
+def _batch(
+    views: list[View], share: list[int], generator: torch.Generator
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Rays, observed depth and colour of `share[i]` random valid pixels of every view."""
+    rays_o, rays_d, depth, color = [], [], [], []
+    for view, n in zip(views, share, strict=True):
+        pick = torch.randint(0, len(view.valid), (n,), generator=generator,
+                             device=generator.device).to(view.valid.device)
+        flat = view.valid[pick]
+        width = view.intrinsics.width
+        u, v = flat % width, flat // width
+        T = torch.as_tensor(view.T_world_cam, dtype=torch.float64, device=view.depth.device)
+        o, d = camera_rays(view.intrinsics, T, u, v)
+        rays_o.append(o)
+        rays_d.append(d)
+        depth.append(view.depth[v, u])
+        color.append(view.rgb[v, u])
+    return torch.cat(rays_o), torch.cat(rays_d), torch.cat(depth), torch.cat(color)

@@ -1,0 +1,223 @@
+"""An agent process's loop over a bus: frames in, messages out, the server's answers applied.
+
+`AgentNode` owns one agent's `Odometry` and `AgentLink`. `start` declares the agent's
+liveliness token, its keyframe-image queryable and its subscriptions (everything the server
+sends it, and the shared decoders of every group: an agent that joins a group learns its id
+in the same step as that group's decoder is sent, so it filters instead of resubscribing);
+`step` processes one frame and publishes what the link produced; `poll` applies, without
+blocking, what arrived (acks trim the outbox, updates move the world, decoders load).
+`run` is the whole standalone-daemon loop; ``cpslam run`` drives `step`/`poll` itself in
+lock-step for determinism.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import torch
+
+from cpslam import protocol
+from cpslam.agent.link import AgentLink
+from cpslam.agent.odometry import FrameResult, Odometry
+from cpslam.agent.standalone import processing_frames, write_agent_outputs
+from cpslam.protocol import (
+    Ack,
+    ErrorReply,
+    GroupDecoder,
+    KeyframeImageRequest,
+    Message,
+    ProtocolError,
+    ServerUpdate,
+    keys,
+)
+
+if TYPE_CHECKING:
+    from cpslam.common.bus import Bus
+    from cpslam.common.config import CpslamConfig
+    from cpslam.common.datasets import RGBDFrame, RGBDSequence
+
+__all__ = ["AgentNode"]
+
+logger = logging.getLogger(__name__)
+
+
+class AgentNode:
+    """One agent on a bus.
+
+    Args:
+        cfg: the whole config.
+        seq: the agent's RGB-D sequence.
+        bus: an open bus (not closed by the node).
+        agent_id: protocol id of the agent.
+        run_dir: the run folder; outputs go to ``run_dir/agent_<id>/``.
+        device: torch device.
+        describe: descriptor function (default: `DescriptorExtractor.from_config`).
+        frames_every: frame poses per batch.
+    """
+
+    def __init__(self, cfg: CpslamConfig, seq: RGBDSequence, bus: Bus, agent_id: str,
+                 run_dir: str | Path, device: str = "cpu", describe: Any = None,
+                 frames_every: int = 10) -> None:
+        self.cfg, self.seq, self.bus = cfg, seq, bus
+        self.agent_id = keys.check_id(agent_id, "agent id")
+        self.session = keys.check_id(cfg.transport.session, "transport.session")
+        self.run_dir, self.device = Path(run_dir), device
+        self.intrinsics, self._frames = processing_frames(seq, cfg.camera.downscale)
+        self.odometry = Odometry.from_config(cfg, self.intrinsics, device, agent_id=0)
+        if describe is None:
+            from cpslam.agent.descriptor import DescriptorExtractor
+
+            describe = DescriptorExtractor.from_config(cfg.place_recognition, device,
+                                                       seed=cfg.run.seed).compute
+        self.link = AgentLink(agent_id, self.odometry, describe, frames_every=frames_every,
+                              round_every_mappings=cfg.federation.round_every_mappings,
+                              federation=cfg.federation.enabled)
+        self.results: list[FrameResult] = []
+        self.dropped = 0
+        self.wall_s = 0.0
+        self._lock = threading.Lock()  # the image queryable reads the keyframe store
+        self._handles: list[Any] = []
+        self._server_sub: Any = None
+        self._decoder_sub: Any = None
+
+    # ------------------------------------------------------------------------- lifecycle
+
+    def start(self) -> AgentNode:
+        s, a = self.session, self.agent_id
+        queue = max(self.cfg.transport.queue_size, 256)
+        self._server_sub = self.bus.subscribe(keys.server_agent_all(s, a), queue_size=queue)
+        self._decoder_sub = self.bus.subscribe(keys.all_group_decoders(s), queue_size=queue)
+        self._handles = [
+            self._server_sub, self._decoder_sub,
+            self.bus.declare_queryable(keys.agent_image_queryable(s, a), self._serve_image),
+            self.bus.declare_liveliness(keys.alive_agent(s, a)),
+        ]
+        return self
+
+    def close(self) -> None:
+        """Withdraw token, queryable and subscriptions (idempotent)."""
+        for handle in self._handles:
+            (handle.close if hasattr(handle, "close") else handle.undeclare)()
+        self._handles = []
+
+    def frames(self) -> Any:
+        """The agent's frames at the processing resolution (an iterator, consumed once)."""
+        return self._frames
+
+    # ------------------------------------------------------------------------- per frame
+
+    def step(self, frame: RGBDFrame) -> FrameResult:
+        """Track/map one frame and publish the resulting messages."""
+        t0 = time.perf_counter()
+        with self._lock:
+            result = self.odometry.step(frame)
+            out = self.link.after_step(frame, result)
+        self.results.append(result)
+        self.send(out)
+        self.wall_s += time.perf_counter() - t0
+        return result
+
+    def send(self, messages: list[Message]) -> None:
+        """Publish agent messages on their topic keys."""
+        topic = {"keyframe": "keyframe", "submap_delta": "submap",
+                 "decoder_weights": "decoder", "frame_poses": "frames"}
+        for msg in messages:
+            key = keys.agent_topic(self.session, self.agent_id, topic[msg.type])
+            try:
+                self.bus.publish(key, protocol.encode(msg))
+            except ProtocolError as exc:
+                logger.error("agent %s: could not send %s seq %d: %s", self.agent_id, msg.type,
+                             msg.seq, exc)
+
+    def poll(self) -> int:
+        """Apply everything queued (acks, updates, shared decoders) without waiting."""
+        n = 0
+        while (sample := self._server_sub.get(timeout=0)) is not None:
+            msg = self._decode(sample.key, sample.payload, (ServerUpdate, Ack))
+            if isinstance(msg, Ack):
+                self.link.on_ack(msg)
+            elif isinstance(msg, ServerUpdate):
+                with self._lock:
+                    self.link.apply_update(msg)
+            n += 1
+        while (sample := self._decoder_sub.get(timeout=0)) is not None:
+            msg = self._decode(sample.key, sample.payload, GroupDecoder)
+            if msg is not None:
+                with self._lock:
+                    self.link.apply_decoder(msg)
+            n += 1
+        return n
+
+    def flush(self) -> None:
+        """Send the frame poses not sent yet (end of the stream)."""
+        self.send(self.link.flush())
+
+    def resend(self) -> int:
+        """Publish every unacknowledged message again (after a reconnect)."""
+        pending = self.link.unacked()
+        self.send(pending)
+        return len(pending)
+
+    def wait_acked(self, timeout_s: float = 10.0, resend_every_s: float = 2.0) -> bool:
+        """Poll until the outbox is empty or `timeout_s` passed; resends what is pending
+        every `resend_every_s`. Returns True when everything was acknowledged."""
+        deadline = time.monotonic() + timeout_s
+        next_resend = time.monotonic() + resend_every_s
+        while self.link.outbox and time.monotonic() < deadline:
+            if not self.poll():
+                time.sleep(0.02)
+            if time.monotonic() >= next_resend and self.link.outbox:
+                self.resend()
+                next_resend = time.monotonic() + resend_every_s
+        if self.link.outbox:
+            logger.warning("agent %s: %d messages never acknowledged", self.agent_id,
+                           len(self.link.outbox))
+        return not self.link.outbox
+
+    def run(self, ack_timeout_s: float = 30.0) -> None:
+        """The daemon loop: every frame, apply what arrived, then step; flush at the end and
+        wait (bounded) for the server to acknowledge everything; write the outputs."""
+        torch.manual_seed(self.cfg.run.seed)
+        for frame in self._frames:
+            self.poll()
+            self.step(frame)
+        self.flush()
+        self.wait_acked(ack_timeout_s)
+        self.write_outputs()
+
+    def write_outputs(self) -> Path:
+        """``run_dir/agent_<id>/`` as a standalone run writes it, plus link statistics."""
+        agent_dir = self.run_dir / f"agent_{self.agent_id}"
+        agent_dir.mkdir(parents=True, exist_ok=True)
+        write_agent_outputs(self.odometry, agent_dir, self.results, self.wall_s, False,
+                            str(self.device))
+        return agent_dir
+
+    # ------------------------------------------------------------------------- helpers
+
+    def _decode(self, key: str, payload: bytes, expected: Any) -> Any:
+        try:
+            return protocol.decode(payload, expected=expected)
+        except ProtocolError as exc:
+            self.dropped += 1
+            logger.warning("agent %s: dropped message on %s: %s", self.agent_id, key, exc)
+            return None
+
+    def _serve_image(self, key: str, payload: bytes | None) -> bytes:
+        try:
+            agent, kf = keys.parse_image_key(self.session, key)
+            request = (protocol.decode(payload, expected=KeyframeImageRequest) if payload
+                       else KeyframeImageRequest(agent_id=agent, kf_id=kf))
+        except ProtocolError as exc:
+            return protocol.encode(ErrorReply(code="bad_request", reason=str(exc)[:4000]))
+        if (request.agent_id, request.kf_id) != (agent, kf):
+            return protocol.encode(ErrorReply(code="bad_request",
+                                              reason="request does not match the key"))
+        with self._lock:
+            reply = self.link.answer_image(request)
+        return protocol.encode(reply)
+

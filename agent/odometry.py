@@ -1,0 +1,319 @@
+"""The per-agent SLAM front end: track every frame, map every `mapping.every` frames, make a
+keyframe every `keyframes.every` frames.
+
+Order within one frame: (1) clip depth to [camera.depth_min, camera.depth_max]; (2) track
+against the map (the first frame defines the agent's world: identity); (3) on a keyframe
+frame, store the keyframe and enter its pose in the map's pose table; (4) on a mapping frame,
+add unexplained points and optimise on this frame plus the co-visible keyframes.
+
+Anchoring: new points are anchored to the LATEST keyframe (the first frame is always keyframe
+0, so there is one). Between two keyframes the camera moves little, so points stay close to
+their anchor's view, and all points created in one keyframe window move together when the
+server corrects that keyframe; the keyframe records their ids.
+
+Ground truth (`frame.gt_pose`) is never read here. Random draws (pixels, ray jitter) come
+from a torch.Generator seeded with (run.seed, frame index), so a CPU run is reproducible.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+
+from cpslam.agent.keyframes import KeyframeStore
+from cpslam.agent.mapper import Mapper, View
+from cpslam.agent.tracker import Tracker
+from cpslam.common.camera import Intrinsics
+from cpslam.common.datasets import RGBDFrame
+from cpslam.common.field import Decoders, FeatureCNN, NeuralPointMap
+from cpslam.common.field_config import (
+    cnn_from_config,
+    decoders_from_config,
+    point_map_from_config,
+    sampler_from_config,
+)
+
+if TYPE_CHECKING:
+    from cpslam.common.config import CpslamConfig
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["FrameResult", "Odometry"]
+
+FORMAT_VERSION = 1
+
+
+@dataclass
+class FrameResult:
+    """What happened to one frame. Times in seconds; map_steps is 0 when it did not map."""
+
+    index: int
+    timestamp: float
+    T_world_cam: np.ndarray  # [4, 4] float64
+    track_time_s: float
+    track_iters: int
+    track_loss: float
+    map_time_s: float
+    map_steps: int
+    n_points: int
+    is_keyframe: bool
+    kf_id: int | None
+
+
+class Odometry:
+    """Tracking, mapping and keyframes of one agent.
+
+    Build it with `from_config`. The intrinsics are those of the PROCESSED images: the caller
+    resizes frames by `camera.downscale` and passes matching intrinsics; Odometry never
+    resizes.
+    """
+
+    def __init__(
+        self,
+        intrinsics: Intrinsics,
+        point_map: NeuralPointMap,
+        decoders: Decoders,
+        cnn: FeatureCNN,
+        tracker: Tracker,
+        mapper: Mapper,
+        keyframes: KeyframeStore,
+        map_every: int = 10,
+        kf_every: int = 50,
+        iters_first: int = 3000,
+        iters: int = 200,
+        iters_after_fusion: int = 150,
+        n_pixels_first: int = 3136,
+        n_pixels: int = 3000,
+        covisible_keyframes: int = 5,
+        init: str = "zero_motion",
+        depth_min: float = 0.01,
+        depth_max: float = 10.0,
+        seed: int = 0,
+        agent_id: int = 0,
+    ) -> None:
+        if init not in ("zero_motion", "constant_velocity"):
+            raise ValueError(f"Odometry: init must be zero_motion or constant_velocity, "
+                             f"got {init!r}")
+        if map_every < 1 or kf_every < 1:
+            raise ValueError(f"Odometry: map_every and kf_every must be >= 1, got "
+                             f"{map_every}, {kf_every}")
+        self.intrinsics = intrinsics
+        self.point_map, self.decoders, self.cnn = point_map, decoders, cnn
+        self.tracker, self.mapper, self.keyframes = tracker, mapper, keyframes
+        self.map_every, self.kf_every = map_every, kf_every
+        self.iters_first, self.iters, self.iters_after_fusion = iters_first, iters, \
+            iters_after_fusion
+        self.n_pixels_first, self.n_pixels = n_pixels_first, n_pixels
+        self.covisible_keyframes = covisible_keyframes
+        self.init = init
+        self.depth_min, self.depth_max = depth_min, depth_max
+        self.seed, self.agent_id = seed, agent_id
+        self.device = point_map.device
+        self.fused = False
+        self._stamps: list[float] = []
+        self._indices: list[int] = []
+        self._poses: list[np.ndarray] = []
+
+    @classmethod
+    def from_config(
+        cls, cfg: CpslamConfig, intrinsics: Intrinsics, device: str, agent_id: int = 0
+    ) -> Odometry:
+        """Everything from the config's field, tracking, mapping, keyframes, camera and run
+        sections, on `device`."""
+        f, tr, mp = cfg.field, cfg.tracking, cfg.mapping
+        seed = cfg.run.seed
+        chunk = f.chunk_rays
+        tracker = Tracker(
+            intrinsics, sampler_from_config(f), iters=tr.iters, n_pixels=tr.n_pixels, lr=tr.lr,
+            color_weight=tr.color_weight, err_lo=tr.outlier_err_lo, err_hi=tr.outlier_err_hi,
+            var_factor=tr.outlier_var_factor, keep_best=tr.keep_best,
+            early_stop_tol=tr.early_stop_tol, k=f.k_neighbors, radius=f.radius,
+            backend=f.neighbour_backend, chunk=chunk,
+        )
+        mapper = Mapper(
+            sampler_from_config(f), lr_decoders=mp.lr_decoders, lr_features=mp.lr_features,
+            feature_lr_decay=mp.feature_lr_decay, feature_lr_decay_steps=mp.feature_lr_decay_steps,
+            color_weight=mp.color_weight, patch_size=f.patch_size,
+            add_points_depth_err=mp.add_points_depth_err, k=f.k_neighbors, radius=f.radius,
+            backend=f.neighbour_backend, chunk=chunk,
+        )
+        return cls(
+            intrinsics,
+            point_map_from_config(f, agent_id, device),
+            decoders_from_config(f, seed).to(device),
+            cnn_from_config(f, seed).to(device),
+            tracker,
+            mapper,
+            KeyframeStore(intrinsics, cfg.keyframes.image_downscale),
+            map_every=mp.every, kf_every=cfg.keyframes.every, iters_first=mp.iters_first,
+            iters=mp.iters, iters_after_fusion=mp.iters_after_fusion,
+            n_pixels_first=mp.n_pixels_first, n_pixels=mp.n_pixels,
+            covisible_keyframes=mp.covisible_keyframes, init=tr.init,
+            depth_min=cfg.camera.depth_min, depth_max=cfg.camera.depth_max,
+            seed=seed, agent_id=agent_id,
+        )
+
+    # ---------------------------------------------------------------------------- per frame
+
+    def step(self, frame: RGBDFrame) -> FrameResult:
+        """Process the next frame (processed resolution) and return what happened."""
+        rgb, depth = self._check_frame(frame)
+        count = len(self._poses)
+        generator = torch.Generator(device="cpu").manual_seed(
+            self.seed * 1_000_003 + int(frame.index))
+        depth_t = torch.from_numpy(depth).to(self.device)
+        rgb_t = torch.from_numpy(rgb).to(self.device).float() / 255.0
+
+        t0 = time.perf_counter()
+        track_iters, track_loss = 0, 0.0
+        if count == 0:
+            T_world_cam = np.eye(4)
+        else:
+            result = self.tracker.track(self.point_map, self.decoders, rgb_t, depth_t,
+                                        self._initial_pose(), generator)
+            T_world_cam, track_iters, track_loss = result.T_world_cam, result.iters, result.loss
+        track_time = time.perf_counter() - t0
+
+        kf_id = None
+        if count % self.kf_every == 0:
+            kf = self.keyframes.add(frame.index, frame.timestamp, T_world_cam, rgb, depth)
+            self.point_map.set_keyframe_poses(kf.kf_id, T_world_cam, self.agent_id)
+            kf_id = kf.kf_id
+
+        map_time, map_steps = 0.0, 0
+        if count % self.map_every == 0:
+            t1 = time.perf_counter()
+            map_steps = self._map(rgb, depth, rgb_t, depth_t, T_world_cam, kf_id, count,
+                                  generator)
+            map_time = time.perf_counter() - t1
+
+        self._stamps.append(float(frame.timestamp))
+        self._indices.append(int(frame.index))
+        self._poses.append(np.asarray(T_world_cam, dtype=np.float64))
+        logger.debug("frame %d: track %d it loss %.4f (%.2f s), map %d steps (%.2f s), %d pts",
+                     frame.index, track_iters, track_loss, track_time, map_steps, map_time,
+                     len(self.point_map))
+        return FrameResult(
+            index=int(frame.index), timestamp=float(frame.timestamp),
+            T_world_cam=self._poses[-1].copy(), track_time_s=track_time,
+            track_iters=track_iters, track_loss=track_loss, map_time_s=map_time,
+            map_steps=map_steps, n_points=len(self.point_map), is_keyframe=kf_id is not None,
+            kf_id=kf_id,
+        )
+
+    def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
+        """Stamps [N] float64 and T_world_cam [N, 4, 4] of every frame so far."""
+        poses = np.stack(self._poses) if self._poses else np.zeros((0, 4, 4))
+        return np.asarray(self._stamps, dtype=np.float64), poses
+
+    @property
+    def n_frames(self) -> int:
+        """Frames processed so far."""
+        return len(self._poses)
+
+    def mark_fused(self) -> None:
+        """The map was just fused with another sub-map: the next mapping call runs
+        `mapping.iters_after_fusion` steps."""
+        self.fused = True
+
+    # ---------------------------------------------------------------------------- internals
+
+    def _check_frame(self, frame: RGBDFrame) -> tuple[np.ndarray, np.ndarray]:
+        """rgb uint8 and depth float32 clipped to [depth_min, depth_max] (0 outside)."""
+        shape = self.intrinsics.shape
+        if frame.depth.shape != shape or frame.rgb.shape != (*shape, 3):
+            raise ValueError(
+                f"Odometry.step: frame {frame.index} has rgb {frame.rgb.shape} / depth "
+                f"{frame.depth.shape}, expected {shape} (resize frames by camera.downscale "
+                f"before step)")
+        if frame.rgb.dtype != np.uint8:
+            raise ValueError(f"Odometry.step: frame {frame.index} rgb must be uint8, "
+                             f"got {frame.rgb.dtype}")
+        depth = np.asarray(frame.depth, dtype=np.float32)
+        ok = np.isfinite(depth) & (depth >= self.depth_min) & (depth <= self.depth_max)
+        return np.ascontiguousarray(frame.rgb), np.where(ok, depth, 0.0).astype(np.float32)
+
+    def _initial_pose(self) -> np.ndarray:
+        previous = self._poses[-1]
+        if self.init == "constant_velocity" and len(self._poses) >= 2:
+            # Repeat the last relative motion: T_k = T_{k-1} (T_{k-2}^-1 T_{k-1}).
+            motion = np.linalg.inv(self._poses[-2]) @ previous
+            return previous @ motion
+        return previous.copy()
+
+    def _map(self, rgb: np.ndarray, depth: np.ndarray, rgb_t: torch.Tensor,
+             depth_t: torch.Tensor, T_world_cam: np.ndarray, kf_id: int | None, count: int,
+             generator: torch.Generator) -> int:
+        anchor = self.keyframes.latest
+        assert anchor is not None  # frame 0 is always a keyframe
+        ids = self.mapper.add_points(self.point_map, self.decoders, self.cnn, rgb, depth,
+                                     self.intrinsics, T_world_cam, anchor.kf_id, generator)
+        self.keyframes.add_point_ids(anchor.kf_id, ids)
+        views = [View(rgb_t, depth_t, T_world_cam, self.intrinsics)]
+        exclude = () if kf_id is None else (kf_id,)
+        for other in self.keyframes.covisible(T_world_cam, self.intrinsics,
+                                              self.covisible_keyframes, exclude=exclude):
+            kf = self.keyframes.get(other)
+            views.append(View(
+                torch.from_numpy(kf.rgb_small).to(self.device).float() / 255.0,
+                torch.from_numpy(kf.depth_small).to(self.device),
+                kf.T_world_cam, self.keyframes.intrinsics_small,
+            ))
+        if count == 0:
+            iters, n_pixels = self.iters_first, self.n_pixels_first
+        else:
+            iters = self.iters_after_fusion if self.fused else self.iters
+            n_pixels = self.n_pixels
+        self.fused = False
+        result = self.mapper.optimise(self.point_map, self.decoders, views, iters, n_pixels,
+                                      generator)
+        return result.steps
+
+    # ---------------------------------------------------------------------------- save/load
+
+    def state_dict(self) -> dict:
+        """Everything needed to render or resume (plain tensors, numbers, strings, lists and
+        dicts: loadable with torch.load(weights_only=True))."""
+        _, poses = self.trajectory()
+        return {
+            "format_version": FORMAT_VERSION,
+            "agent_id": self.agent_id,
+            "seed": self.seed,
+            "intrinsics": self.intrinsics.to_dict(),
+            "point_map": self.point_map.state_dict(),
+            "decoders": {k: v.detach().cpu().clone() for k, v in
+                         self.decoders.state_dict().items()},
+            "keyframes": self.keyframes.state_dict(),
+            "stamps": torch.tensor(self._stamps, dtype=torch.float64),
+            "frame_indices": torch.tensor(self._indices, dtype=torch.int64),
+            "poses": torch.from_numpy(poses.copy()),
+            "n_frames": self.n_frames,
+            "fused": self.fused,
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore what `state_dict` wrote (same config and processing resolution)."""
+        if int(state.get("format_version", -1)) != FORMAT_VERSION:
+            raise ValueError(f"odometry state: format_version {state.get('format_version')}, "
+                             f"expected {FORMAT_VERSION}")
+        intrinsics = Intrinsics.from_dict(state["intrinsics"])
+        if intrinsics != self.intrinsics:
+            raise ValueError(f"odometry state: saved at {intrinsics}, this odometry works at "
+                             f"{self.intrinsics}")
+        self.point_map.load_state_dict(state["point_map"], source="odometry state point_map")
+        self.decoders.load_state_dict(state["decoders"])
+        self.keyframes.load_state_dict(state["keyframes"], source="odometry state keyframes")
+        self._stamps = [float(s) for s in state["stamps"].tolist()]
+        self._indices = [int(i) for i in state["frame_indices"].tolist()]
+        self._poses = [p.numpy().astype(np.float64) for p in state["poses"]]
+        if not len(self._stamps) == len(self._indices) == len(self._poses) \
+                == int(state["n_frames"]):
+            raise ValueError("odometry state: stamps, frame_indices and poses differ in length")
+        self.seed = int(state["seed"])
+        self.agent_id = int(state["agent_id"])
+        self.fused = bool(state["fused"])

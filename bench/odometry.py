@@ -1,0 +1,191 @@
+"""Single-agent odometry quality and speed, printed as a table and as JSON.
+
+- synthetic: `cpslam dataset synth --scene room --loop --frames 300` at 320x240 (generated once
+  and cached under runs/bench-data/), ATE with origin and se3 alignment;
+- real: ../shared/data/7scenes-kitchen-0-299 processed at camera.downscale (320x240 for the
+  cpu preset), ATE with se3 alignment, next to Open3D's frame-to-frame RGB-D odometry
+  (`compute_rgbd_odometry`, hybrid term, chained) at the same resolution and at 640x480.
+
+Timings are wall-clock on this machine with `run.num_threads` torch threads (1 when unset).
+
+Usage: python bench/odometry.py [--preset cpu] [--frames N] [--only synth|real] [--json PATH]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from cpslam.agent.odometry import Odometry
+from cpslam.common.camera import Intrinsics, resize_rgbd
+from cpslam.common.config import load_config
+from cpslam.common.datasets import open_sequence
+from cpslam.common.eval import evaluate_ate
+
+REPO = Path(__file__).resolve().parents[1]
+SYNTH_DIR = REPO / "runs" / "bench-data" / "room-loop-300-320x240"
+KITCHEN = REPO.parent / "shared" / "data" / "7scenes-kitchen-0-299"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--preset", default="cpu")
+    parser.add_argument("--frames", type=int, default=300, help="frames of each sequence")
+    parser.add_argument("--only", choices=("synth", "real"), default=None)
+    parser.add_argument("--set", nargs="*", default=[], help="config overrides a.b=value")
+    parser.add_argument("--json", type=Path, default=None, help="also write the JSON here")
+    args = parser.parse_args()
+    cfg = load_config(args.preset, overrides=args.set, env={})
+    torch.set_num_threads(cfg.run.num_threads or 1)
+    report: dict = {
+        "machine": {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),
+                    "torch_threads": torch.get_num_threads(), "torch": torch.__version__,
+                    "load_average_1min_at_start": round(os.getloadavg()[0], 2)},
+        "preset": args.preset, "overrides": args.set, "frames": args.frames,
+    }
+    if args.only in (None, "synth"):
+        report["synthetic"] = bench_synthetic(cfg, args.frames)
+    if args.only in (None, "real"):
+        if KITCHEN.is_dir():
+            report["real"] = bench_real(cfg, args.frames)
+        else:
+            report["real"] = {"skipped": f"no data at {KITCHEN}"}
+    print_table(report)
+    text = json.dumps(report, indent=2)
+    print(text)
+    if args.json:
+        args.json.write_text(text + "\n")
+
+
+def bench_synthetic(cfg, frames: int) -> dict:
+    if not (SYNTH_DIR / "agent_0" / "traj.txt").is_file():
+        from cpslam.common.synth import generate
+
+        generate(SYNTH_DIR, scene="room", frames=300, width=320, height=240, loop=True,
+                 overwrite=True)
+    seq = open_sequence(SYNTH_DIR / "agent_0", frames=slice(0, frames))
+    # The synthetic data is already 320x240: process it at its own size.
+    return run_odometry(cfg, seq, factor=1.0, aligns=("origin", "se3"))
+
+
+def bench_real(cfg, frames: int) -> dict:
+    seq = open_sequence(KITCHEN, frames=slice(0, frames))
+    out = run_odometry(cfg, seq, factor=cfg.camera.downscale, aligns=("se3",))
+    out["open3d"] = {}
+    for factor in sorted({cfg.camera.downscale, 1.0}):
+        size = "x".join(map(str, _size(seq.intrinsics, factor)))
+        out["open3d"][size] = open3d_odometry(seq, factor, cfg.camera.depth_max)
+    best = min(v["ate_se3_cm"] for v in out["open3d"].values())
+    out["ratio_ours_over_best_open3d"] = round(out["ate_se3_cm"] / best, 3)
+    return out
+
+
+def run_odometry(cfg, seq, factor: float, aligns: tuple[str, ...]) -> dict:
+    intrinsics = seq.intrinsics.scaled(factor) if factor != 1.0 else seq.intrinsics
+    odometry = Odometry.from_config(cfg, intrinsics, "cpu")
+    track, mapping, map_calls = [], [], []
+    start = time.perf_counter()
+    for i in range(len(seq)):
+        frame = seq[i]
+        if factor != 1.0:
+            frame.rgb, frame.depth = resize_rgbd(frame.rgb, frame.depth, factor)
+        result = odometry.step(frame)
+        track.append(result.track_time_s)
+        mapping.append(result.map_time_s)
+        if result.map_steps and i > 0:
+            map_calls.append(result.map_time_s)
+        if i % 50 == 0:
+            print(f"  frame {i}/{len(seq)}: {time.perf_counter() - start:.0f} s, "
+                  f"{result.n_points} points", file=sys.stderr, flush=True)
+    total = time.perf_counter() - start
+    stamps, poses = odometry.trajectory()
+    out = {"frames": len(seq), "resolution": f"{intrinsics.width}x{intrinsics.height}"}
+    for align in aligns:
+        ate = evaluate_ate(seq.timestamps, seq.gt_poses(), stamps, poses, align=align)
+        out[f"ate_{align}_cm"] = round(100 * ate.rmse, 3)
+    out.update({
+        "mean_s_per_frame": round(total / len(seq), 3),
+        "tracking_s_per_frame": round(float(np.mean(track[1:])), 3),
+        "mapping_s_per_call": round(float(np.mean(map_calls)), 3) if map_calls else None,
+        "first_mapping_s": round(mapping[0], 2),
+        "points": len(odometry.point_map),
+        "keyframes": len(odometry.keyframes),
+    })
+    return out
+
+
+def open3d_odometry(seq, factor: float, depth_max: float) -> dict:
+    """Open3D RGB-D odometry (hybrid term), frame to frame, chained from identity."""
+    import open3d as o3d
+
+    intr = seq.intrinsics.scaled(factor) if factor != 1.0 else seq.intrinsics
+    pinhole = o3d.camera.PinholeCameraIntrinsic(intr.width, intr.height, intr.fx, intr.fy,
+                                                intr.cx, intr.cy)
+    option = o3d.pipelines.odometry.OdometryOption()
+    option.depth_max = depth_max
+    jacobian = o3d.pipelines.odometry.RGBDOdometryJacobianFromHybridTerm()
+    poses = [np.eye(4)]
+    previous = None
+    failures = 0
+    start = time.perf_counter()
+    for i in range(len(seq)):
+        frame = seq[i]
+        rgb, depth = frame.rgb, frame.depth
+        if factor != 1.0:
+            rgb, depth = resize_rgbd(rgb, depth, factor)
+        image = o3d.geometry.RGBDImage.create_from_color_and_depth(
+            o3d.geometry.Image(np.ascontiguousarray(rgb)),
+            o3d.geometry.Image(np.ascontiguousarray(depth)),
+            depth_scale=1.0, depth_trunc=depth_max, convert_rgb_to_intensity=True)
+        if previous is not None:
+            ok, T_prev_cur, _ = o3d.pipelines.odometry.compute_rgbd_odometry(
+                image, previous, pinhole, np.eye(4), jacobian, option)
+            if not ok:
+                failures += 1
+                T_prev_cur = np.eye(4)
+            poses.append(poses[-1] @ T_prev_cur)
+        previous = image
+    seconds = time.perf_counter() - start
+    ate = evaluate_ate(seq.timestamps, seq.gt_poses(), seq.timestamps, np.stack(poses),
+                       align="se3")
+    return {"ate_se3_cm": round(100 * ate.rmse, 3), "failures": failures,
+            "mean_s_per_frame": round(seconds / len(seq), 3)}
+
+
+def _size(intr: Intrinsics, factor: float) -> tuple[int, int]:
+    scaled = intr.scaled(factor) if factor != 1.0 else intr
+    return scaled.width, scaled.height
+
+
+def print_table(report: dict) -> None:
+    rows = [("sequence", "ATE origin cm", "ATE se3 cm", "s/frame", "track s/frame",
+             "map s/call", "points")]
+    for name in ("synthetic", "real"):
+        r = report.get(name)
+        if not r or "skipped" in r:
+            continue
+        rows.append((f"{name} ({r['resolution']}, cpslam)", str(r.get("ate_origin_cm", "-")),
+                     str(r["ate_se3_cm"]), str(r["mean_s_per_frame"]),
+                     str(r["tracking_s_per_frame"]), str(r["mapping_s_per_call"]),
+                     str(r["points"])))
+        for size, o in r.get("open3d", {}).items():
+            rows.append((f"{name} ({size}, Open3D hybrid)", "-", str(o["ate_se3_cm"]),
+                         str(o["mean_s_per_frame"]), "-", "-", "-"))
+        if "ratio_ours_over_best_open3d" in r:
+            rows.append((f"{name}: ATE ratio cpslam / best Open3D",
+                         str(r["ratio_ours_over_best_open3d"]), "", "", "", "", ""))
+    widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]
+    for row in rows:
+        print("  ".join(cell.ljust(w) for cell, w in zip(row, widths, strict=True)))
+
+
+if __name__ == "__main__":
+    main()

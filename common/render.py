@@ -1,0 +1,154 @@
+"""Render depth and colour images from a saved neural point map: `cpslam render`.
+
+The output folder is itself a sequence in the Replica layout (`results/`, `traj.txt`,
+`camera.yaml`), so `cpslam dataset info`, the mesh builder and the depth-L1 metric read it like
+any other data set.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated
+
+import numpy as np
+import typer
+
+if TYPE_CHECKING:
+    from cpslam.common.camera import Intrinsics
+    from cpslam.common.config import CpslamConfig
+    from cpslam.common.field import Decoders, NeuralPointMap
+
+logger = logging.getLogger(__name__)
+
+STATE_FILE = "state.pt"
+
+
+@dataclass
+class RunModel:
+    """What is needed to render a saved run: its config, map, decoders and camera."""
+
+    config: CpslamConfig
+    point_map: NeuralPointMap
+    decoders: Decoders
+    intrinsics: Intrinsics
+
+
+def load_run_model(run: Path, agent_id: int = 0, device: str = "cpu") -> RunModel:
+    """Rebuild the map and decoders of `run/agent_<id>/state.pt` using `run/config.yaml`."""
+    import torch
+
+    from cpslam.common.camera import Intrinsics
+    from cpslam.common.config import load_config_file
+    from cpslam.common.field_config import decoders_from_config, point_map_from_config
+
+    config_path = run / "config.yaml"
+    state_path = run / f"agent_{agent_id}" / STATE_FILE
+    for path in (config_path, state_path):
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: not found (is {run} a cpslam run folder?)")
+    cfg = load_config_file(config_path)
+    state = torch.load(state_path, map_location=device, weights_only=True)
+    for key in ("point_map", "decoders", "intrinsics"):
+        if key not in state:
+            raise ValueError(f"{state_path}: missing {key!r}; not a cpslam agent state file")
+    point_map = point_map_from_config(cfg.field, agent_id, device)
+    point_map.load_state_dict(state["point_map"])
+    decoders = decoders_from_config(cfg.field, cfg.run.seed).to(device)
+    decoders.load_state_dict(state["decoders"])
+    decoders.eval()
+    return RunModel(cfg, point_map, decoders, Intrinsics.from_dict(state["intrinsics"]))
+
+
+def render_views(
+    model: RunModel, poses: np.ndarray, intrinsics: Intrinsics | None = None, chunk: int = 2048
+) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """Yield (rgb uint8 [H,W,3], depth float32 [H,W]) for each `T_world_cam` in `poses`."""
+    import torch
+
+    from cpslam.common.field import render_image
+    from cpslam.common.field_config import sampler_from_config
+
+    intr = intrinsics or model.intrinsics
+    f = model.config.field
+    # Bin centres, no jitter: renders are deterministic.
+    sampler = sampler_from_config(f, perturb=False)
+    for T_world_cam in poses:
+        T = torch.as_tensor(T_world_cam, dtype=torch.float64, device=model.point_map.device)
+        out = render_image(model.point_map, model.decoders, intr, T, sampler=sampler,
+                           k=f.k_neighbors, radius=f.radius, chunk=chunk,
+                           backend=f.neighbour_backend)
+        rgb = (out["color"].clamp(0, 1) * 255 + 0.5).to(torch.uint8).cpu().numpy()
+        yield rgb, out["depth"].float().cpu().numpy()
+
+
+def write_renders(
+    out: Path, views: Iterator[tuple[np.ndarray, np.ndarray]], poses: np.ndarray,
+    intrinsics: Intrinsics, fps: float = 30.0, show_progress: bool = True,
+) -> int:
+    """Write views in the Replica layout; returns the number of frames written."""
+    import yaml
+
+    from cpslam.common.logs import progress
+    from cpslam.common.synth.writer import DEPTH_SCALE, write_frame
+
+    results = out / "results"
+    results.mkdir(parents=True, exist_ok=True)
+    count = 0
+    for i, (rgb, depth) in enumerate(progress(views, total=len(poses), desc="render",
+                                              disable=not show_progress)):
+        write_frame(results, i, rgb, depth)
+        count += 1
+    np.savetxt(out / "traj.txt", poses[:count].reshape(count, 16), fmt="%.9f")
+    camera = {**intrinsics.to_dict(), "depth_scale": DEPTH_SCALE, "fps": fps}
+    (out / "camera.yaml").write_text(yaml.safe_dump(camera, sort_keys=False))
+    return count
+
+
+def render(
+    run: Annotated[Path, typer.Argument(help="Run folder (holds config.yaml and agent_<id>/).")],
+    poses: Annotated[
+        Path | None,
+        typer.Option("--poses", help="TUM file of T_world_cam to render (default: the run's "
+                     "own agent_<id>/trajectory.tum)."),
+    ] = None,
+    agent: Annotated[int, typer.Option("--agent", help="Which agent's map.")] = 0,
+    out: Annotated[
+        Path | None, typer.Option("--out", help="Output folder (default: RUN/agent_<id>/renders).")
+    ] = None,
+    every: Annotated[int, typer.Option("--every", min=1, help="Render every N-th pose.")] = 1,
+    scale: Annotated[
+        float, typer.Option("--scale", min=0.05, max=4.0, help="Image size factor.")
+    ] = 1.0,
+    device: Annotated[str, typer.Option("--device", help="auto, cpu, cuda or cuda:N.")] = "auto",
+) -> None:
+    """Render depth and colour images from a saved map.
+
+    The output is a sequence folder in the Replica layout (results/frame*.png, depth*.png,
+    traj.txt, camera.yaml).
+
+    Examples:
+
+      cpslam render runs/room --every 10
+
+      cpslam render runs/room --poses runs/data/room/agent_0/gt.tum --out runs/room/gt_views
+    """
+    from cpslam.common.device import resolve_device
+    from cpslam.common.trajectory import read_tum
+
+    try:
+        torch_device = resolve_device(device)
+        model = load_run_model(run, agent, torch_device)
+        pose_file = poses or run / f"agent_{agent}" / "trajectory.tum"
+        _, T_world_cam = read_tum(pose_file)
+    except (FileNotFoundError, ValueError) as err:
+        typer.echo(f"error: {err}", err=True)
+        raise typer.Exit(2) from None
+    T_world_cam = T_world_cam[::every]
+    intrinsics = model.intrinsics if scale == 1.0 else model.intrinsics.scaled(scale)
+    target = out or run / f"agent_{agent}" / "renders"
+    n = write_renders(target, render_views(model, T_world_cam, intrinsics), T_world_cam,
+                      intrinsics)
+    typer.echo(f"rendered {n} views at {intrinsics.width}x{intrinsics.height} → {target}")

@@ -1,0 +1,115 @@
+"""The standalone agent as a user runs it: synthesise, run, evaluate, render, resume, Ctrl-C."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from cpslam.agent.cli import app as agent_app
+from cpslam.cli import app as cpslam_app
+from cpslam.common.trajectory import read_tum
+
+pytestmark = pytest.mark.slow
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def room(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("room")
+    result = runner.invoke(cpslam_app, ["dataset", "synth", "--scene", "room", "--loop",
+                                        "--frames", "24", "--width", "96", "--height", "72",
+                                        "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    return out / "agent_0"
+
+
+def _agent(*args: str) -> object:
+    return runner.invoke(agent_app, ["--preset", "tiny", "--no-progress", *args])
+
+
+def test_standalone_run_writes_everything_and_evaluates(room: Path, tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    result = _agent("--seq", str(room), "--standalone", "--frames", "0:12", "--out", str(run))
+    assert result.exit_code == 0, result.output
+    agent_dir = run / "agent_0"
+    for name in ("trajectory.tum", "map.ply", "state.pt", "metrics.json"):
+        assert (agent_dir / name).is_file(), name
+    assert (run / "config.yaml").is_file()
+    stamps, poses = read_tum(agent_dir / "trajectory.tum")
+    assert len(stamps) == 12
+    metrics = json.loads((agent_dir / "metrics.json").read_text())
+    assert metrics["frames"] == 12 and metrics["points"] > 0
+    assert metrics["decoder_parameters"] > 0 and metrics["peak_cpu_memory_mb"] > 0
+    assert len(metrics["per_frame"]) == 12
+    result = runner.invoke(cpslam_app, ["eval", "ate", "--gt", str(room), "--est", str(run),
+                                        "--json", str(tmp_path / "ate.json")])
+    assert result.exit_code == 0, result.output
+    ate = json.loads((tmp_path / "ate.json").read_text())
+    assert ate["n_pairs"] == 12 and ate["rmse_m"] < 0.2  # tiny preset: bounded, not accurate
+
+    result = runner.invoke(cpslam_app, ["render", str(run), "--every", "6", "--scale", "0.5"])
+    assert result.exit_code == 0, result.output
+    renders = agent_dir / "renders"
+    assert len(list((renders / "results").glob("depth*.png"))) == 2
+    from cpslam.common.datasets import open_sequence
+
+    view = open_sequence(renders)[0]
+    assert (view.depth > 0).mean() > 0.3  # the map covers most of the first view
+
+
+def test_resume_continues_where_the_run_stopped(room: Path, tmp_path: Path) -> None:
+    first = tmp_path / "a"
+    assert _agent("--seq", str(room), "--standalone", "--frames", "0:8",
+                  "--out", str(first)).exit_code == 0
+    second = tmp_path / "b"
+    result = _agent("--seq", str(room), "--standalone", "--frames", "0:12", "--out", str(second),
+                    "--resume", str(first / "agent_0" / "state.pt"))
+    assert result.exit_code == 0, result.output
+    stamps, _ = read_tum(second / "agent_0" / "trajectory.tum")
+    assert len(stamps) == 12
+    metrics = json.loads((second / "agent_0" / "metrics.json").read_text())
+    assert metrics["frames"] == 4  # only the frames after the resumed state were processed
+
+
+def test_bad_inputs_exit_2_with_a_message(room: Path, tmp_path: Path) -> None:
+    result = _agent("--seq", str(tmp_path / "nowhere"), "--standalone")
+    assert result.exit_code == 2 and "nowhere" in result.output
+    result = _agent("--seq", str(room), "--standalone", "--set", "tracking.bogus=1")
+    assert result.exit_code == 2 and "tracking.bogus" in result.output
+    result = _agent("--seq", str(room))
+    assert result.exit_code == 2 and "--standalone" in result.output
+
+
+def test_ctrl_c_saves_what_exists(room: Path, tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cpslam.agent.cli", "--seq", str(room), "--standalone",
+         "--preset", "tiny", "--no-progress", "--out", str(run)],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )
+    deadline = time.monotonic() + 120
+    # Wait until a few frames are done (the first frame maps for longer), then interrupt.
+    while time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.5)
+        if (run / "config.yaml").exists() and time.monotonic() > deadline - 110:
+            break
+    time.sleep(8)
+    proc.send_signal(signal.SIGINT)
+    out, _ = proc.communicate(timeout=60)
+    assert proc.returncode in (0, 130), out
+    agent_dir = run / "agent_0"
+    assert (agent_dir / "state.pt").is_file(), out
+    metrics = json.loads((agent_dir / "metrics.json").read_text())
+    if proc.returncode == 130:
+        assert metrics["interrupted"] and "Traceback" not in out
+    stamps, poses = read_tum(agent_dir / "trajectory.tum")
+    assert len(stamps) == metrics["frames"] > 0
+    assert np.isfinite(poses).all()

@@ -1,0 +1,126 @@
+"""Mapper: points only where the map does not explain the frame, grid filter, optimisation of
+visible features only, and keyframe pose changes moving anchored points."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from cpslam.agent.mapper import Mapper, View
+from cpslam.common.camera import Intrinsics
+from cpslam.common.field import Decoders, FeatureCNN, NeuralPointMap, RaySampler
+from cpslam.common.field.grid import grid_winners
+from cpslam.common.geometry import se3_exp
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    """One torch thread: on a shared 2-core machine two threads ran these ops ~8x slower."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+INTR = Intrinsics(fx=64.0, fy=64.0, cx=39.5, cy=29.5, width=80, height=60)
+CELL = 0.1
+
+
+def _wall_frame(depth_m: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
+    """A textured fronto-parallel wall."""
+    v, u = np.mgrid[0:60, 0:80]
+    rgb = np.stack(((u * 3) % 256, (v * 4) % 256, ((u + v) * 2) % 256), -1).astype(np.uint8)
+    return rgb, np.full((60, 80), depth_m, dtype=np.float32)
+
+
+def _setup() -> tuple[NeuralPointMap, Decoders, FeatureCNN, Mapper]:
+    point_map = NeuralPointMap(feature_dim=8, cell_size=CELL)
+    point_map.set_keyframe_poses(0, np.eye(4))
+    decoders = Decoders(feature_dim=8, c_hidden=16, c_out=16, g_hidden=16, u_hidden=16,
+                        u_layers=1)
+    mapper = Mapper(RaySampler(n_near=4, n_uniform=2), patch_size=4, k=4, radius=0.12)
+    return point_map, decoders, FeatureCNN(8), mapper
+
+
+def _view(rgb: np.ndarray, depth: np.ndarray, T: np.ndarray) -> View:
+    return View(torch.from_numpy(rgb).float() / 255, torch.from_numpy(depth), T, INTR)
+
+
+def test_points_added_only_where_unexplained_and_grid_filtered() -> None:
+    point_map, decoders, cnn, mapper = _setup()
+    rgb, depth = _wall_frame()
+    first = mapper.add_points(point_map, decoders, cnn, rgb, depth, INTR, np.eye(4), 0)
+    assert len(first) == len(point_map) > 20
+    xyz = point_map.xyz_world().double().numpy()
+    assert grid_winners(xyz, CELL).all()  # at most one point per cell
+    # The same view again: everything is explained, nothing is added.
+    again = mapper.add_points(point_map, decoders, cnn, rgb, depth, INTR, np.eye(4), 0)
+    assert len(again) == 0
+    # A view shifted sideways by 1 m: only the newly seen strip gets points, each farther
+    # than the search radius from every old point.
+    T_shift = se3_exp(np.array([1.0, 0, 0, 0, 0, 0]))
+    new = mapper.add_points(point_map, decoders, cnn, rgb, depth, INTR, T_shift, 0)
+    assert len(new) > 0
+    new_xyz = point_map.xyz_world()[point_map.rows_of(new)].double().numpy()
+    d = np.linalg.norm(new_xyz[:, None] - xyz[None], axis=-1).min(axis=1)
+    assert (d > mapper.radius).all()
+    assert new_xyz[:, 0].min() > xyz[:, 0].max() - CELL  # the new strip is on the right
+    assert grid_winners(point_map.xyz_world().double().numpy(), CELL).all()
+
+
+def test_depth_error_rule_adds_where_rendered_depth_misses() -> None:
+    point_map, decoders, cnn, mapper = _setup()
+    rgb, depth = _wall_frame(2.0)
+    mapper.add_points(point_map, decoders, cnn, rgb, depth, INTR, np.eye(4), 0)
+    n_before = len(point_map)
+    mapper.add_points_depth_err = 0.05
+    # An untrained map renders nothing sensible at 1.5 m: the closer wall is unexplained
+    # everywhere, so points are added although the old ones are within reach of some pixels.
+    _, near = _wall_frame(1.5)
+    added = mapper.add_points(point_map, decoders, cnn, rgb, near, INTR, np.eye(4), 0,
+                              torch.Generator().manual_seed(0))
+    assert len(added) > 0 and len(point_map) == n_before + len(added)
+
+
+def test_optimise_lowers_loss_and_leaves_unseen_points_alone() -> None:
+    point_map, decoders, cnn, mapper = _setup()
+    rgb, depth = _wall_frame()
+    mapper.add_points(point_map, decoders, cnn, rgb, depth, INTR, np.eye(4), 0)
+    # A far-away point nobody sees.
+    point_map.add_points(torch.tensor([[50.0, 0.0, -3.0]]), 0, torch.ones(1, 8),
+                         torch.zeros(1, 3, dtype=torch.uint8))
+    before = point_map.features.detach().clone()
+    gen = torch.Generator().manual_seed(0)
+    result = mapper.optimise(point_map, decoders, [_view(rgb, depth, np.eye(4))], 60, 300, gen)
+    assert result.steps == 60
+    assert result.loss_last < 0.5 * result.loss_first
+    after = point_map.features.detach()
+    assert torch.equal(after[-1], before[-1])
+    assert not torch.equal(after[:-1], before[:-1])
+
+
+def test_keyframe_pose_change_moves_anchored_points() -> None:
+    point_map, decoders, cnn, mapper = _setup()
+    rgb, depth = _wall_frame()
+    point_map.set_keyframe_poses(1, np.eye(4))
+    ids0 = mapper.add_points(point_map, decoders, cnn, rgb, depth, INTR, np.eye(4), 0)
+    T_side = se3_exp(np.array([3.0, 0, 0, 0, 0, 0]))
+    ids1 = mapper.add_points(point_map, decoders, cnn, rgb, depth, INTR, T_side, 1)
+    rows0, rows1 = point_map.rows_of(ids0), point_map.rows_of(ids1)
+    before = point_map.xyz_world().clone()
+    correction = se3_exp(np.array([0.0, 0.2, 0, 0, 0, 0.1]))
+    point_map.set_keyframe_poses(1, correction)
+    after = point_map.xyz_world()
+    assert torch.equal(after[rows0], before[rows0])
+    expected = before[rows1].double() @ torch.from_numpy(correction[:3, :3]).T \
+        + torch.from_numpy(correction[:3, 3])
+    torch.testing.assert_close(after[rows1].double(), expected, atol=1e-5, rtol=0)
+
+
+def test_view_checks_shapes() -> None:
+    rgb, depth = _wall_frame()
+    with pytest.raises(ValueError, match="intrinsics"):
+        View(torch.zeros(10, 10, 3), torch.zeros(10, 10), np.eye(4), INTR)
+    view = _view(rgb, depth, np.eye(4))
+    assert len(view.valid) == 60 * 80

@@ -1,0 +1,158 @@
+"""Tracker: recovers a perturbed pose on a map fitted to synthetic views; keep-best; the
+outlier mask; pixel sampling."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from cpslam.agent.mapper import Mapper, View
+from cpslam.agent.tracker import Tracker, outlier_mask, sample_pixels
+from cpslam.common.camera import Intrinsics
+from cpslam.common.field import Decoders, FeatureCNN, NeuralPointMap, RaySampler
+from cpslam.common.geometry import se3_exp
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    """One torch thread: on a shared 2-core machine two threads ran these ops ~8x slower."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+BOX_LO = np.array([-1.5, -1.2, -1.0])
+BOX_HI = np.array([1.5, 1.2, 2.0])
+
+
+def _box_view(T_world_cam: np.ndarray, intr: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
+    """RGB and z-depth of the inside of a textured box seen from T_world_cam."""
+    v, u = np.mgrid[0 : intr.height, 0 : intr.width]
+    d_cam = np.stack(((u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, np.ones(u.shape)), -1)
+    d = d_cam @ T_world_cam[:3, :3].T  # world directions with camera z = 1
+    o = T_world_cam[:3, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(d > 0, (BOX_HI - o) / d, np.where(d < 0, (BOX_LO - o) / d, np.inf))
+    depth = t.min(-1)  # t along a z = 1 direction is the z-depth
+    x = o + depth[..., None] * d
+    stripes = (np.floor(x * 5).sum(-1) % 2)[..., None]
+    rgb = 60 + 120 * stripes + 60 * (x - BOX_LO) / (BOX_HI - BOX_LO)
+    return rgb.clip(0, 255).astype(np.uint8), depth.astype(np.float32)
+
+
+def _look_at_corner(offset: np.ndarray) -> np.ndarray:
+    """A camera near the box centre looking towards the (+x, +y, +z) corner."""
+    centre = np.array([0.0, 0.0, 0.0]) + offset
+    forward = np.array([1.0, 0.6, 1.6])
+    z = forward / np.linalg.norm(forward)
+    x = np.cross(np.array([0.0, 1.0, 0.0]), z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    T = np.eye(4)
+    T[:3, :3] = np.stack((x, y, z), axis=1)
+    T[:3, 3] = centre
+    return T
+
+
+@pytest.fixture(scope="module")
+def fitted() -> dict:
+    """A map fitted to three views of a box corner (every wall constrains the pose)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    intr = Intrinsics(fx=64.0, fy=64.0, cx=39.5, cy=29.5, width=80, height=60)
+    poses = [_look_at_corner(np.array(o)) for o in ((0, 0, 0), (0.15, 0, -0.1), (-0.1, 0.1, 0))]
+    point_map = NeuralPointMap(feature_dim=16, cell_size=0.1)
+    point_map.set_keyframe_poses(0, np.eye(4))
+    decoders = Decoders(feature_dim=16, c_hidden=32, c_out=32, g_hidden=32, u_hidden=32,
+                        u_layers=1, seed=0)
+    sampler = RaySampler(n_near=8, n_uniform=2)
+    mapper = Mapper(sampler, patch_size=2, k=6, radius=0.15, color_weight=0.2)
+    cnn = FeatureCNN(16, seed=0)
+    views = []
+    for T in poses:
+        rgb, depth = _box_view(T, intr)
+        mapper.add_points(point_map, decoders, cnn, rgb, depth, intr, T, 0)
+        views.append(View(torch.from_numpy(rgb).float() / 255, torch.from_numpy(depth), T, intr))
+    mapper.optimise(point_map, decoders, views, 300, 600, torch.Generator().manual_seed(0))
+    torch.set_num_threads(before)
+    T_true = _look_at_corner(np.array([0.05, 0.03, -0.05]))
+    rgb, depth = _box_view(T_true, intr)
+    return {"map": point_map, "decoders": decoders, "intr": intr, "sampler": sampler,
+            "rgb": rgb, "depth": depth, "T_true": T_true}
+
+
+def _tracker(fitted: dict, **kwargs) -> Tracker:
+    args = {"iters": 60, "n_pixels": 500, "lr": 0.003, "k": 6, "radius": 0.15}
+    args.update(kwargs)
+    return Tracker(fitted["intr"], fitted["sampler"], **args)
+
+
+def _errors(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
+    """Translation (m) and rotation (degrees) between two poses."""
+    E = np.linalg.inv(T_true) @ T_est
+    angle = np.degrees(np.arccos(np.clip((np.trace(E[:3, :3]) - 1) / 2, -1, 1)))
+    return float(np.linalg.norm(E[:3, 3])), float(angle)
+
+
+def _track(fitted: dict, tracker: Tracker, T_init: np.ndarray):
+    return tracker.track(fitted["map"], fitted["decoders"],
+                         torch.from_numpy(fitted["rgb"]).float() / 255,
+                         torch.from_numpy(fitted["depth"]), T_init,
+                         torch.Generator().manual_seed(1))
+
+
+def test_recovers_2cm_2deg_perturbation(fitted: dict) -> None:
+    T_true = fitted["T_true"]
+    axis = np.array([1.0, -2.0, 0.5]) / np.linalg.norm([1.0, -2.0, 0.5])
+    shift = np.array([0.012, 0.010, -0.012])  # 2 cm
+    T_init = T_true @ se3_exp(np.concatenate((shift, np.radians(2.0) * axis)))
+    t0, r0 = _errors(T_init, T_true)
+    assert t0 == pytest.approx(0.02, abs=1e-3) and r0 == pytest.approx(2.0, abs=0.01)
+    result = _track(fitted, _tracker(fitted), T_init)
+    t1, r1 = _errors(result.T_world_cam, T_true)
+    assert result.iters == 60 and result.losses[-1] < 0.5 * result.losses[0]
+    assert t1 < 0.008 and r1 < 0.5, (t1, r1)
+
+
+def test_keep_best_returns_the_lowest_loss_pose(fitted: dict) -> None:
+    T_init = fitted["T_true"] @ se3_exp(np.array([0.01, 0, 0, 0, 0.01, 0]))
+    # A step far too large makes the loss jump around, so the last step is rarely the best.
+    wild = _track(fitted, _tracker(fitted, lr=0.05, iters=12), T_init)
+    best = int(np.argmin(wild.losses))
+    assert wild.loss == min(wild.losses) and wild.best_iter == best
+    last = _track(fitted, _tracker(fitted, lr=0.05, iters=12, keep_best=False), T_init)
+    assert last.loss == last.losses[-1]
+    # Same seed, same path: the kept pose is the one evaluated at the best step, and tracking
+    # again from it with zero steps of movement reproduces that loss.
+    check = _track(fitted, _tracker(fitted, iters=1), wild.T_world_cam)
+    assert check.losses[0] == pytest.approx(wild.loss, rel=1e-5)
+    if best != len(wild.losses) - 1:
+        assert not np.allclose(wild.T_world_cam, last.T_world_cam)
+
+
+def test_early_stop_stops_before_the_step_limit(fitted: dict) -> None:
+    result = _track(fitted, _tracker(fitted, iters=80, early_stop_tol=0.05), fitted["T_true"])
+    assert result.iters < 80
+
+
+def test_outlier_mask_rule() -> None:
+    err = torch.tensor([0.001, 0.02, 0.03, 0.04, 0.05, 1.0])  # median 0.035
+    var = torch.tensor([1.0, 1.0, 1.0, 1.0, 9.0, 1.0])  # median 1
+    keep = outlier_mask(err, var, err_lo=0.1, err_hi=10.0, var_factor=2.0)
+    # 0.001 < 0.0035 (too small), 1.0 > 0.35 (too large), variance 9 > 2.
+    assert keep.tolist() == [False, True, True, True, False, False]
+
+
+def test_sample_pixels_only_valid_depth() -> None:
+    depth = torch.zeros(10, 12)
+    depth[2:4, 5:9] = 1.5
+    u, v = sample_pixels(depth, 50, torch.Generator().manual_seed(0))
+    assert len(u) == 8  # fewer valid pixels than asked: all of them
+    assert bool((depth[v, u] > 0).all())
+    depth[:] = 2.0
+    u, v = sample_pixels(depth, 50, torch.Generator().manual_seed(0))
+    assert len(u) == 50 and bool((u < 12).all() and (v < 10).all())
+    with pytest.raises(ValueError, match="valid depth"):
+        sample_pixels(torch.zeros(4, 4), 5, torch.Generator())
