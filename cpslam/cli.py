@@ -16,7 +16,9 @@ from cpslam.common.datasets.cli import info as dataset_info
 from cpslam.common.eval.cli import ate as eval_ate
 from cpslam.common.eval.recon_cli import recon as eval_recon
 from cpslam.common.logs import setup_logging
+from cpslam.common.render import render
 from cpslam.common.synth.cli import synth as dataset_synth
+from cpslam.run import run as run_command
 
 app = typer.Typer(
     no_args_is_help=True,
@@ -36,6 +38,8 @@ dataset_app.command("synth")(dataset_synth)
 eval_app.command("ate")(eval_ate)
 eval_app.command("recon")(eval_recon)
 config_app.command("show")(config_show)
+app.command("render")(render)
+app.command("run")(run_command)
 config_app.command("presets")(config_presets)
 
 

@@ -53,9 +53,10 @@ class TransportConfig(Section):
     @field_validator("session")
     @classmethod
     def _session_name(cls, value: str) -> str:
-        if not re.fullmatch(r"[A-Za-z0-9_.-]+", value):
+        # Same rule as protocol ids: the session is a chunk of every key expression.
+        if not re.fullmatch(r"[A-Za-z0-9_-]{1,64}", value):
             raise ValueError(
-                f"session {value!r} must be a non-empty name of letters, digits, '_', '.', '-'"
+                f"session {value!r} must be 1-64 letters, digits, '_' or '-'"
             )
         return value
 

@@ -1,0 +1,183 @@
+"""Collaboration quality bars (issue 5 section 6): prints a table and writes JSON.
+
+    python bench/collab.py                      # apartment, 2 agents x 300 frames, cpu preset
+    python bench/collab.py --frames 150 --skip-loop --preset tiny   # a quick look
+
+Two-agent part: `cpslam dataset synth --scene apartment --agents 2 --frames N` (320x240,
+cached under runs/bench-data/), `cpslam run` with the preset; reports whether and when the
+agents merged, the joint se3 ATE of both global trajectories (one alignment for both), each
+agent's origin-aligned ATE (the paper's), the same without any pose-graph correction (odometry
+chained in the group frame by the merge alignment), and the false-loop test: the final pose
+graph gets false loop edges (random keyframe pairs with the relative pose of another pair),
+20 % of all loop edges, straight into the graph without verification; re-optimised; the ATE
+change is reported.
+
+Single-agent part: `room --loop` sequence, `cpslam run` with one agent: ATE with loop closure
+and pose graph versus the odometry alone.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _data(scene: str, agents: int, frames: int, loop: bool, seed: int) -> list[Path]:
+    from cpslam.common.synth import generate
+
+    name = f"{scene}-{agents}x{frames}{'-loop' if loop else ''}-s{seed}"
+    out = ROOT / "runs" / "bench-data" / name
+    if (out / "scene.json").is_file():
+        return sorted(p for p in out.glob("agent_*") if p.is_dir())
+    return generate(out, scene=scene, agents=agents, frames=frames, loop=loop, seed=seed,
+                    overwrite=True).agent_dirs
+
+
+def _run(paths: list[Path], preset: str, sets: list[str], out: Path, seed: int):
+    from cpslam.agent.standalone import open_for_config
+    from cpslam.common.config import load_config
+    from cpslam.run import run_collab
+
+    cfg = load_config(preset, overrides=[*sets, f"run.seed={seed}"], env={})
+    seqs = [open_for_config(cfg, p) for p in paths]
+    return run_collab(cfg, seqs, out, "cpu", show_progress=False), seqs
+
+
+def _false_loops(result, seqs, fraction: float, seed: int) -> dict:
+    """Inject false loop edges into the final pose graph, re-optimise, joint ATE again."""
+    from cpslam.common.eval import joint_ate
+
+    graph = result.final.pose_graph
+    if graph is None:
+        return {}
+    rng = np.random.default_rng(seed)
+    n_true = len(graph.loop_ids)
+    n_false = max(1, round(fraction * n_true / (1 - fraction)))
+    nodes = _kf_nodes(graph)
+    for i in range(n_false):
+        (a, ka), (b, kb) = (nodes[j] for j in rng.choice(len(nodes), 2, replace=False))
+        # A plausible-looking but wrong relative pose: identity rotation, 0.5-1.5 m offset.
+        T = np.eye(4)
+        T[:3, 3] = rng.uniform(0.5, 1.5, 3) * rng.choice([-1, 1], 3)
+        graph.add_loop(a, ka, b, kb, T, sigma_t=0.05, sigma_r=0.05,
+                       loop_id=f"false{i}")
+    opt = graph.optimize()
+    gts = {aid: (np.asarray(s.timestamps), s.gt_poses()) for aid, s in zip(result.agent_ids,
+                                                                           seqs, strict=True)}
+    pairs = []
+    for a in result.final.agents:
+        traj = graph._trajectories.get(a.agent_id)  # noqa: SLF001 - bench only
+        if traj is None:
+            continue
+        poses = graph.corrected_frames(opt, a.agent_id)
+        stamps = _stamps_of(a, traj.frame_indices)
+        pairs.append((gts[a.agent_id], (stamps, poses)))
+    if not pairs:
+        return {}
+    ate = joint_ate(pairs, align="se3").overall.rmse
+    return {"false_loops": n_false, "true_loops": n_true, "joint_se3_rmse_m": float(ate),
+            "outliers_flagged": len(opt.outlier_loops)}
+
+
+def _kf_nodes(graph) -> list[tuple[str, int]]:
+    return [(agent, int(node)) for agent, kind, node in graph._names  # noqa: SLF001
+            if kind == "kf"]
+
+
+def _stamps_of(agent_result, frame_indices) -> np.ndarray:
+    """Stamps of the graph's frames (the exported trajectory lists every frame in order)."""
+    stamps = agent_result.stamps
+    if len(stamps) != len(frame_indices):
+        raise ValueError("frame count of the graph and the trajectory differ")
+    return stamps
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--frames", type=int, default=300)
+    ap.add_argument("--loop-frames", type=int, default=300)
+    ap.add_argument("--preset", default="cpu")
+    ap.add_argument("--set", action="append", default=[], dest="sets")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--false-fraction", type=float, default=0.2)
+    ap.add_argument("--skip-loop", action="store_true")
+    ap.add_argument("--skip-collab", action="store_true")
+    ap.add_argument("--out", type=Path, default=ROOT / "runs" / "bench-collab")
+    args = ap.parse_args()
+    logging.basicConfig(level=logging.WARNING)
+    import torch
+
+    torch.set_num_threads(1)
+    report: dict = {"preset": args.preset, "sets": args.sets, "seed": args.seed}
+    if not args.skip_collab:
+        t0 = time.perf_counter()
+        paths = _data("apartment", 2, args.frames, False, args.seed)
+        result, seqs = _run(paths, args.preset, args.sets, args.out / "apartment", args.seed)
+        ev = result.evaluation
+        merges = result.final.metrics.get("merges", [])
+        report["apartment"] = {
+            "merged": bool(merges), "merge_time_s": [m["time"] for m in merges],
+            "merge_frame": [round(m["time"] * 30) for m in merges], **ev,
+            "loops": {k: v for k, v in result.final.metrics["loops"].items() if k != "list"},
+            "false_loop_test": _false_loops(result, seqs, args.false_fraction, args.seed),
+            "wall_s": time.perf_counter() - t0,
+        }
+    if not args.skip_loop:
+        t0 = time.perf_counter()
+        paths = _data("room", 1, args.loop_frames, True, args.seed)
+        result, _ = _run(paths, args.preset, args.sets, args.out / "room-loop", args.seed)
+        report["room_loop"] = {**result.evaluation, "wall_s": time.perf_counter() - t0,
+                               "loops": {k: v for k, v in result.final.metrics["loops"].items()
+                                         if k != "list"}}
+    _print(report)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "collab.json").write_text(json.dumps(report, indent=2, default=float))
+
+
+def _print(report: dict) -> None:
+    def cm(v):
+        return "-" if v is None else f"{100 * v:.2f} cm"
+
+    rows = []
+    apt = report.get("apartment")
+    if apt:
+        fl = apt.get("false_loop_test", {})
+        base = apt.get("global_joint_se3_rmse_m")
+        change = (abs(fl["joint_se3_rmse_m"] - base) / base * 100) if fl and base else None
+        rows += [
+            ("apartment merged (frame)", f"{apt['merged']} {apt['merge_frame']}"),
+            ("joint se3 ATE, global (bar <= 2 cm)", cm(base)),
+            ("joint se3 ATE, no pose graph", cm(apt.get("odometry_joint_se3_rmse_m"))),
+            ("origin ATE per agent", ", ".join(f"{a}: {cm(v)}" for a, v in
+                                               apt.get("global_origin_rmse_m", {}).items())),
+            ("origin ATE per agent, no pose graph", ", ".join(
+                f"{a}: {cm(v)}" for a, v in apt.get("odometry_origin_rmse_m", {}).items())),
+            ("false loops injected / true", f"{fl.get('false_loops')} / {fl.get('true_loops')}"),
+            ("joint ATE with false loops (change, bar < 10 %)",
+             f"{cm(fl.get('joint_se3_rmse_m'))} ({'-' if change is None else f'{change:.1f} %'})"),
+            ("wall time", f"{apt['wall_s']:.0f} s"),
+        ]
+    loop = report.get("room_loop")
+    if loop:
+        rows += [
+            ("room loop: ATE with loop closure + PGO", cm(loop.get("global_joint_se3_rmse_m"))),
+            ("room loop: ATE odometry alone", cm(loop.get("odometry_joint_se3_rmse_m"))),
+            ("room loop: loops accepted / found",
+             f"{loop['loops'].get('accepted')} / {loop['loops'].get('found')}"),
+            ("room loop wall time", f"{loop['wall_s']:.0f} s"),
+        ]
+    width = max(len(r[0]) for r in rows) if rows else 0
+    for name, value in rows:
+        sys.stdout.write(f"{name:<{width}}  {value}\n")
+
+
+if __name__ == "__main__":
+    main()

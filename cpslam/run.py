@@ -1,0 +1,314 @@
+"""`cpslam run`: N agents and the server in one process over the in-memory bus.
+
+The debugging and integration harness: same nodes as the daemons, one `InMemoryNetwork`.
+Everything is driven from one thread in lock-step, so a CPU run is reproducible: for each
+frame t, every agent steps one frame (in order), the bus is flushed, the server handles what
+arrived in (agent, seq) order and steps, the bus is flushed again, and every agent applies
+what came back. The back end's clock is virtual (frame t at t times the frame period), so
+time-based choices (round time-outs, sharing) do not depend on the machine's speed.
+
+Outputs under RUN: ``config.yaml``; per agent ``agent_<id>/`` (as a standalone run);
+``trajectories/agent_<id>_local.tum`` and ``_global.tum`` (and ``_odometry.tum``: the
+group-frame trajectory without any pose-graph correction, for comparison), ``fused_map.*``,
+``pose_graph.g2o``, ``metrics.json`` (server) and, when the sequences have ground truth,
+``evaluation.json`` (computed after the run; nothing reads ground truth while it runs).
+
+Relative poses of loops are the coarse geometric estimates (the back end's ``refine_pose``
+hook is left empty: the agent's tracker is not usable from the server side yet).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated, Any
+
+import numpy as np
+import typer
+
+from cpslam.common.config.cli import ConfigOpt, DeviceOpt, PresetOpt, SeedOpt, SetOpt
+
+if TYPE_CHECKING:
+    from cpslam.common.bus import Bus
+    from cpslam.common.config import CpslamConfig
+    from cpslam.common.datasets import RGBDSequence
+    from cpslam.server.result import FinalResult
+
+__all__ = ["CollabRun", "LockstepBarrier", "evaluate_run", "run", "run_collab"]
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class CollabRun:
+    """What `run_collab` did: the server's final result, the nodes' numbers, evaluation."""
+
+    run_dir: Path
+    agent_ids: list[str]
+    final: FinalResult
+    frames: dict[str, int]
+    wall_s: float
+    odometry: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    """Per agent (stamps, T_group_cam) without pose-graph corrections."""
+    evaluation: dict[str, Any] = field(default_factory=dict)
+
+
+class LockstepBarrier:
+    """Waits until the bus has delivered everything published before `wait` was called.
+
+    The in-memory network delivers on one dispatcher thread in publication order, so once a
+    marker published now comes back, every earlier publication sits in its subscribers'
+    queues.
+    """
+
+    def __init__(self, bus: Bus, session: str) -> None:
+        self.bus = bus
+        self.key = f"cpslam/{session}/run/barrier"
+        self.sub = bus.subscribe(self.key, queue_size=16)
+        self.count = 0
+
+    def wait(self, timeout_s: float = 60.0) -> None:
+        self.count += 1
+        marker = str(self.count).encode()
+        self.bus.publish(self.key, marker)
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            sample = self.sub.get(timeout=max(deadline - time.monotonic(), 1e-3))
+            if sample is not None and sample.payload == marker:
+                return
+        raise TimeoutError(f"in-memory bus did not flush within {timeout_s} s")
+
+
+def run_collab(cfg: CpslamConfig, sequences: list[RGBDSequence], run_dir: Path,
+               device: str = "cpu", agent_ids: list[str] | None = None,
+               show_progress: bool = True, describe: Any = None) -> CollabRun:
+    """Run one agent per sequence and the server in lock-step; write everything to run_dir."""
+    import torch
+
+    from cpslam.agent.node import AgentNode
+    from cpslam.common.bus import InMemoryBus, InMemoryNetwork
+    from cpslam.common.config import save_config
+    from cpslam.common.logs import make_progress
+    from cpslam.common.trajectory import write_tum
+    from cpslam.server.node import ServerNode
+
+    ids = agent_ids or [str(i) for i in range(len(sequences))]
+    if len(ids) != len(sequences) or len(set(ids)) != len(ids):
+        raise ValueError(f"run_collab: {len(sequences)} sequences need as many distinct agent "
+                         f"ids, got {ids}")
+    run_dir.mkdir(parents=True, exist_ok=True)
+    save_config(cfg, run_dir / "config.yaml")
+    torch.manual_seed(cfg.run.seed)
+    period = _frame_period(sequences[0])
+    clock = [0.0]
+    network = InMemoryNetwork()
+    buses = [InMemoryBus(network) for _ in range(len(sequences) + 1)]
+    t0 = time.perf_counter()
+    try:
+        server = ServerNode(cfg, buses[0], run_dir, now=lambda: clock[0]).start()
+        agents = [AgentNode(cfg, seq, bus, aid, run_dir, device, describe=describe).start()
+                  for seq, bus, aid in zip(sequences, buses[1:], ids, strict=True)]
+        barrier = LockstepBarrier(buses[0], server.session)
+        streams = [node.frames() for node in agents]
+        total = max(len(s) for s in sequences)
+
+        def exchange() -> None:
+            barrier.wait()
+            server.poll()
+            barrier.wait()
+            for node in agents:
+                node.poll()
+
+        with make_progress(disable=not show_progress) as bar:
+            task = bar.add_task("agents " + ",".join(ids), total=total, info="")
+            for t in range(total):
+                for node, stream, seq in zip(agents, streams, sequences, strict=True):
+                    if t < len(seq):
+                        node.step(next(stream))
+                exchange()
+                clock[0] = (t + 1) * period
+                status = server.backend.status()
+                bar.update(task, advance=1, info=f"groups {len(status['groups'])}  loops "
+                           f"{status['loops']['accepted']}/{status['loops']['found']}")
+        for node in agents:
+            node.flush()
+        exchange()
+        for node in agents:
+            if node.link.outbox:
+                logger.warning("agent %s: %d messages unacknowledged at the end", node.agent_id,
+                               len(node.link.outbox))
+        for node in agents:
+            node.write_outputs()
+        final = server.finalise()
+        odometry = _odometry_trajectories(server)
+        for aid, (stamps, poses) in odometry.items():
+            write_tum(run_dir / "trajectories" / f"agent_{aid}_odometry.tum", stamps, poses)
+        frames = {node.agent_id: len(node.results) for node in agents}
+        for node in agents:
+            node.close()
+        server.close()
+    finally:
+        for bus in buses:
+            bus.close()
+    out = CollabRun(run_dir, ids, final, frames, time.perf_counter() - t0, odometry)
+    out.evaluation = evaluate_run(out, sequences)
+    if out.evaluation:
+        from cpslam.common.rundir import write_json
+
+        write_json(run_dir / "evaluation.json", out.evaluation)
+    return out
+
+
+def evaluate_run(result: CollabRun, sequences: list[RGBDSequence]) -> dict[str, Any]:
+    """ATE (m) of the global trajectories against ground truth: one se3 alignment for all
+    agents (joint), per agent with the paper's origin alignment, and the same without the
+    pose graph. Empty when a sequence has no ground truth."""
+    from cpslam.common.eval import joint_ate
+
+    gts = {}
+    for aid, seq in zip(result.agent_ids, sequences, strict=True):
+        if not seq.has_gt:
+            return {}
+        gts[aid] = (np.asarray(seq.timestamps, np.float64), seq.gt_poses())
+    estimates = {a.agent_id: (a.stamps, a.T_group_cam) for a in result.final.agents}
+    present = [aid for aid in result.agent_ids if aid in estimates]
+    if not present:
+        return {}
+    out: dict[str, Any] = {}
+    for name, trajs in (("global", estimates), ("odometry", result.odometry)):
+        have = [aid for aid in present if aid in trajs and len(trajs[aid][0]) >= 3]
+        if not have:
+            continue
+        joint = joint_ate([(gts[a], trajs[a]) for a in have], align="se3")
+        out[f"{name}_joint_se3_rmse_m"] = float(joint.overall.rmse)
+        out[f"{name}_origin_rmse_m"] = {
+            a: float(joint_ate([(gts[a], trajs[a])], align="origin").overall.rmse)
+            for a in have}
+    out["merged"] = {a.agent_id: a.merged for a in result.final.agents}
+    merges = result.final.metrics.get("merges", [])
+    out["merge_time_s"] = [m["time"] for m in merges]
+    return out
+
+
+def _frame_period(seq: RGBDSequence) -> float:
+    stamps = np.asarray(seq.timestamps, np.float64)
+    if len(stamps) > 1:
+        step = float(np.median(np.diff(stamps)))
+        if step > 0:
+            return step
+    return 1.0 / 30.0
+
+
+def _odometry_trajectories(server: Any) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Each agent's frames chained from its odometry alone, placed in its group's frame by
+    the merge alignment: the trajectory the system would have without pose graphs."""
+    from cpslam.common.geometry import compose
+    from cpslam.server.tracks import trajectory_poses
+
+    backend = server.backend
+    out = {}
+    for group in backend.groups.groups.values():
+        for m in group.members:
+            rec = backend.registry.agents[m]
+            if not rec.keyframes:
+                continue
+            T_ga = group.T_group_agent[m]
+            kf_poses = {k: compose(T_ga, T) for k, T in rec.odometry().items()}
+            out[m] = trajectory_poses(rec, kf_poses)
+    return out
+
+
+def run(
+    seq: Annotated[list[Path], typer.Option("--seq", help="Sequence folder of one agent "
+                                            "(repeat for more agents).")],
+    preset: PresetOpt = "cpu",
+    config_file: ConfigOpt = None,
+    sets: SetOpt = None,
+    device: DeviceOpt = None,
+    seed: SeedOpt = None,
+    frames: Annotated[str | None, typer.Option(
+        "--frames", help="START:STOP[:STEP] of every sequence.")] = None,
+    fmt: Annotated[str | None, typer.Option(
+        "--format", help="replica, tum, 7scenes or scannet (default: detect).")] = None,
+    out: Annotated[Path | None, typer.Option(
+        "--out", help="Run folder (default: run.out/run.name, timestamped).")] = None,
+    no_progress: Annotated[bool, typer.Option("--no-progress", help="No progress bar.")] = False,
+) -> None:
+    """Run N agents and the server in one process over the in-memory bus.
+
+    One agent per --seq, ids 0, 1, …; agents that see the same place merge into one group
+    (one frame, shared decoders). With one --seq: single-agent SLAM with loop closure.
+
+    Writes RUN/config.yaml, RUN/agent_<id>/ (as cpslam-agent --standalone),
+    RUN/trajectories/agent_<id>_local.tum (own frame) and _global.tum (group frame),
+    fused_map.ply, pose_graph.g2o, metrics.json and, with ground truth, evaluation.json.
+
+    Examples:
+
+      cpslam run --seq data/apt/agent_0 --seq data/apt/agent_1 --out runs/apt
+
+      cpslam run --seq data/room-loop/agent_0 --preset cpu --out runs/loop
+    """
+    from cpslam.common.config.cli import config_or_exit
+    from cpslam.common.datasets import DatasetError
+    from cpslam.common.device import resolve_device
+    from cpslam.common.rundir import create_run_dir
+
+    cfg = config_or_exit(preset, config_file, sets, device, seed)
+    try:
+        torch_device = resolve_device(cfg.run.device)
+        from cpslam.protocol import ProtocolError, keys
+
+        keys.check_id(cfg.transport.session, "transport.session")
+    except (ValueError, ProtocolError) as err:
+        typer.echo(f"error: {err}", err=True)
+        raise typer.Exit(2) from None
+    from cpslam.agent.standalone import open_for_config
+
+    try:
+        sequences = [open_for_config(cfg, path, fmt, frames) for path in seq]
+    except DatasetError as err:
+        typer.echo(f"error: {err}", err=True)
+        raise typer.Exit(2) from None
+    if cfg.run.num_threads:
+        import torch
+
+        torch.set_num_threads(cfg.run.num_threads)
+    run_dir = out if out is not None else create_run_dir(cfg.run.out, cfg.run.name)
+    result = run_collab(cfg, sequences, run_dir, torch_device, show_progress=not no_progress)
+    _print_table(result)
+
+
+def _print_table(result: CollabRun) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    metrics = result.final.metrics
+    loops = metrics.get("loops", {})
+    ev = result.evaluation
+    table = Table(title=f"cpslam run → {result.run_dir}  ({result.wall_s:.0f} s)")
+    for col in ("agent", "frames", "group", "merged", "ATE origin (cm)", "no PGO (cm)"):
+        table.add_column(col)
+    for a in result.final.agents:
+        origin = ev.get("global_origin_rmse_m", {}).get(a.agent_id)
+        odo = ev.get("odometry_origin_rmse_m", {}).get(a.agent_id)
+        table.add_row(a.agent_id, str(result.frames.get(a.agent_id, 0)), a.group_id,
+                      "yes" if a.merged else "no", _cm(origin), _cm(odo))
+    console = Console()
+    console.print(table)
+    merges = metrics.get("merges", [])
+    console.print(
+        f"groups {len(metrics.get('groups', []))}, loops found {loops.get('found', 0)} / "
+        f"accepted {loops.get('accepted', 0)} / rejected {loops.get('rejected', 0)}, rounds "
+        f"{metrics.get('rounds', {}).get('closed', 0)}, merges at "
+        f"{[round(m['time'], 2) for m in merges]} s")
+    if "global_joint_se3_rmse_m" in ev:
+        console.print(f"joint se3 ATE of all global trajectories: "
+                      f"{_cm(ev['global_joint_se3_rmse_m'])} cm (without pose graph "
+                      f"{_cm(ev.get('odometry_joint_se3_rmse_m'))} cm)")
+
+
+def _cm(value: float | None) -> str:
+    return "-" if value is None else f"{100 * value:.2f}"

@@ -1,0 +1,261 @@
+"""AgentLink: messages per step, outbox trimming, server updates moving poses and map
+consistently, foreign points, shared decoders and keyframe image requests."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from cpslam import protocol
+from cpslam.agent.link import AgentLink
+from cpslam.agent.odometry import Odometry
+from cpslam.common.camera import Intrinsics
+from cpslam.common.config import load_config
+from cpslam.common.datasets import RGBDFrame
+from cpslam.common.geometry import se3_exp
+from cpslam.protocol import (
+    Ack,
+    DecoderWeights,
+    ErrorReply,
+    ForeignPoints,
+    FramePoses,
+    GroupDecoder,
+    KeyframeImage,
+    KeyframeImageRequest,
+    KeyframeMsg,
+    ServerUpdate,
+    SubmapDelta,
+)
+
+INTR = Intrinsics(fx=64.0, fy=64.0, cx=39.5, cy=29.5, width=80, height=60)
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def _frame(i: int) -> RGBDFrame:
+    """A textured wall 2 m ahead; the camera slides 1 mm per frame."""
+    v, u = np.mgrid[0:60, 0:80]
+    u = u + i * 0.032  # 1 mm at 2 m with fx 64
+    rgb = np.stack(((u * 3) % 256, (v * 4) % 256, ((u + v) * 2) % 256), -1).astype(np.uint8)
+    return RGBDFrame(i, i / 30.0, rgb, np.full((60, 80), 2.0, np.float32), None)
+
+
+def _describe(rgb: np.ndarray) -> np.ndarray:
+    d = rgb.reshape(-1, 3).mean(0).astype(np.float32) + 1.0
+    return d / np.linalg.norm(d)
+
+
+def _link(frames_every: int = 3, rounds: int = 1) -> AgentLink:
+    cfg = load_config("tiny", overrides=["mapping.iters_first=10", "mapping.iters=3",
+                                                "tracking.iters=3"], env={})
+    odometry = Odometry.from_config(cfg, INTR, "cpu", agent_id=0)
+    return AgentLink("a0", odometry, _describe, frames_every=frames_every,
+                     round_every_mappings=rounds)
+
+
+def _run(link: AgentLink, start: int, stop: int) -> list[protocol.Message]:
+    out = []
+    for i in range(start, stop):
+        frame = _frame(i)
+        out += link.after_step(frame, link.odometry.step(frame))
+    return out
+
+
+@pytest.fixture(scope="module")
+def warm() -> tuple[AgentLink, list[protocol.Message]]:
+    link = _link()
+    return link, _run(link, 0, 6)
+
+
+def _update(link: AgentLink, seq: int, T: np.ndarray, kf_ids=(), poses=None, foreign=(),
+            group: str = "a0", members=("a0",), epoch: int = 1) -> ServerUpdate:
+    kf = np.asarray(kf_ids, np.int32)
+    return ServerUpdate(agent_id=link.agent_id, seq=seq, epoch=epoch, group_id=group,
+                        group_members=list(members), T_group_agent=T, kf_ids=kf,
+                        T_group_kf=np.zeros((0, 4, 4)) if poses is None else poses,
+                        foreign=list(foreign))
+
+
+def test_messages_per_step(warm) -> None:
+    link, msgs = warm
+    kinds = [type(m).__name__ for m in msgs]
+    # frame 0: keyframe, sub-map, decoder weights (a round every mapping), frame poses (kf);
+    # frame 3: frame poses (batch of 3); frame 5: the same for the second keyframe.
+    assert kinds == ["KeyframeMsg", "SubmapDelta", "DecoderWeights", "FramePoses",
+                     "FramePoses",
+                     "KeyframeMsg", "SubmapDelta", "DecoderWeights", "FramePoses"]
+    assert [m.seq for m in msgs] == list(range(len(msgs)))
+    for m in msgs:  # every message is valid on the wire
+        protocol.decode(protocol.encode(m), expected=type(m))
+    kf0, kf1 = msgs[0], msgs[5]
+    assert isinstance(kf0, KeyframeMsg) and kf0.kf_id == 0 and kf0.T_prev_kf_kf is None
+    assert kf1.kf_id == 1 and kf1.frame_index == 5 and kf1.world_epoch == 0
+    np.testing.assert_allclose(kf1.T_prev_kf_kf, np.linalg.inv(kf0.T_world_cam)
+                               @ kf1.T_world_cam, atol=1e-9)
+    frames = [m for m in msgs if isinstance(m, FramePoses)]
+    assert np.concatenate([f.frame_indices for f in frames]).tolist() == list(range(6))
+    assert frames[-1].kf_ids.tolist() == [0, 1]
+    np.testing.assert_allclose(frames[-1].T_kf_frame[1], np.eye(4), atol=1e-9)
+    delta0 = msgs[1]
+    assert isinstance(delta0, SubmapDelta)
+    assert len(delta0.point_ids) > 0 and delta0.removed_ids.size == 0
+    weights = msgs[2]
+    assert isinstance(weights, DecoderWeights) and weights.round == 0
+    assert weights.group_id == "a0" and weights.n_samples > 0
+    assert set(weights.tensors) == set(link.odometry.decoders.state_dict())
+
+
+def test_submap_delta_sends_only_new_or_changed_own_points() -> None:
+    link = _link(frames_every=100, rounds=100)
+    first = [m for m in _run(link, 0, 1) if isinstance(m, SubmapDelta)][0]
+    pm = link.odometry.point_map
+    assert sorted(first.point_ids.tolist()) == sorted(pm.point_id.tolist())
+    # Nothing changed since: no delta.
+    assert link._submap_delta() is None
+    # One point removed, one feature changed.
+    gone, touched = int(pm.point_id[0]), int(pm.point_id[1])
+    pm.set_features(torch.tensor([1]), pm.features.detach()[1:2] + 1.0)
+    pm.remove([gone])
+    delta = link._submap_delta()
+    assert delta.removed_ids.tolist() == [gone] and delta.point_ids.tolist() == [touched]
+
+
+def test_outbox_trimmed_by_acks(warm) -> None:
+    link = _link()
+    msgs = _run(link, 0, 1)
+    n = len(msgs)
+    assert [m.seq for m in link.unacked()] == list(range(n))
+    assert link.on_ack(Ack(agent_id="other", seq=n)) == 0
+    assert link.on_ack(Ack(agent_id="a0", seq=1)) == 2
+    assert [m.seq for m in link.unacked()] == list(range(2, n))
+    assert link.on_ack(Ack(agent_id="a0", seq=0)) == 0  # an older ack changes nothing
+    link.on_ack(Ack(agent_id="a0", seq=n - 1))
+    assert link.unacked() == [] and link.next_seq == n
+
+
+def test_alignment_moves_poses_and_map_together() -> None:
+    link = _link()
+    _run(link, 0, 6)
+    odo = link.odometry
+    xyz_before = odo.point_map.xyz_world().double().numpy()
+    kf_before = {kf.kf_id: kf.T_world_cam.copy() for kf in odo.keyframes}
+    _, traj_before = odo.trajectory()
+    T = se3_exp(np.array([0.5, -0.2, 1.0, 0.1, -0.3, 0.2]))
+    assert link.apply_update(_update(link, 1, T))
+    assert not link.apply_update(_update(link, 1, T))  # replayed seq: ignored
+    xyz = odo.point_map.xyz_world().double().numpy()
+    np.testing.assert_allclose(xyz, xyz_before @ T[:3, :3].T + T[:3, 3], atol=1e-4)
+    for kf in odo.keyframes:
+        np.testing.assert_allclose(kf.T_world_cam, T @ kf_before[kf.kf_id], atol=1e-9)
+        np.testing.assert_allclose(odo.point_map.keyframe_pose(kf.kf_id).numpy(),
+                                   kf.T_world_cam, atol=1e-9)
+    _, traj = odo.trajectory()
+    np.testing.assert_allclose(traj, T @ traj_before, atol=1e-9)
+    assert link.epoch == 1 and np.allclose(link.T_group_agent, T)
+    # Tracking continues in the group frame, and keyframes say which world they are in.
+    msgs = _run(link, 6, 11)
+    kf = [m for m in msgs if isinstance(m, KeyframeMsg)][0]
+    assert kf.world_epoch == 1
+    step = np.linalg.inv(traj[-1]) @ odo.trajectory()[1][-1]
+    assert np.linalg.norm(step[:3, 3]) < 0.05  # no jump back to the old world
+    np.testing.assert_allclose(kf.T_world_cam, odo.keyframes.get(kf.kf_id).T_world_cam)
+
+
+def test_corrected_keyframe_moves_its_points_and_frames() -> None:
+    link = _link()
+    _run(link, 0, 8)
+    odo = link.odometry
+    pm = odo.point_map
+    rows1 = (pm.anchor_kf == 1).nonzero(as_tuple=True)[0]
+    rows0 = (pm.anchor_kf == 0).nonzero(as_tuple=True)[0]
+    xyz_before = pm.xyz_world().double().numpy()
+    _, traj_before = odo.trajectory()
+    fix = se3_exp(np.array([0.05, 0.0, 0.0, 0.0, 0.0, 0.02]))
+    T1 = fix @ odo.keyframes.get(1).T_world_cam
+    link.apply_update(_update(link, 1, np.eye(4), kf_ids=[0, 1],
+                              poses=np.stack([odo.keyframes.get(0).T_world_cam, T1]), epoch=0))
+    xyz = pm.xyz_world().double().numpy()
+    np.testing.assert_allclose(xyz[rows0.numpy()], xyz_before[rows0.numpy()], atol=1e-5)
+    if len(rows1):
+        moved = xyz_before[rows1.numpy()] @ fix[:3, :3].T + fix[:3, 3]
+        np.testing.assert_allclose(xyz[rows1.numpy()], moved, atol=1e-4)
+    _, traj = odo.trajectory()
+    np.testing.assert_allclose(traj[:5], traj_before[:5], atol=1e-9)  # frames of kf 0
+    np.testing.assert_allclose(traj[5:], fix @ traj_before[5:], atol=1e-9)  # frames of kf 1
+
+
+def _foreign(link: AgentLink, n: int = 5, removed=()) -> ForeignPoints:
+    F = link.odometry.point_map.feature_dim
+    T_kf = se3_exp(np.array([0.0, 0.0, 5.0, 0.0, 0.0, 0.0]))
+    xyz = np.column_stack([np.arange(n) * 0.3, np.zeros(n), np.full(n, 1.0)]).astype(np.float32)
+    return ForeignPoints(
+        source_agent_id="b1", kf_ids=np.array([7], np.int32), T_group_kf=T_kf[None],
+        point_ids=np.arange(n, dtype=np.int64), anchor_kf_ids=np.full(n, 7, np.int32),
+        xyz_local=xyz, features=np.full((n, F), 0.5, np.float16),
+        colors=np.full((n, 3), 9, np.uint8), removed_ids=np.asarray(removed, np.int64))
+
+
+def test_foreign_points_join_the_map_and_are_never_sent_back() -> None:
+    link = _link(frames_every=100, rounds=100)
+    _run(link, 0, 2)
+    pm = link.odometry.point_map
+    own = len(pm)
+    upd = _update(link, 1, np.eye(4), foreign=[_foreign(link)], group="a0",
+                  members=("a0", "b1"), epoch=0)
+    assert link.apply_update(upd)
+    assert link.foreign_index == {"b1": 1} and len(pm) == own + 5
+    assert link.odometry.fused
+    rows = (pm.agent_id == 1).nonzero(as_tuple=True)[0]
+    xyz = pm.xyz_world()[rows].double().numpy()
+    np.testing.assert_allclose(xyz[:, 2], 6.0, atol=1e-5)
+    # The next delta carries own points only.
+    pm.set_features(rows, pm.features.detach()[rows] + 1.0)
+    link._sent_ids = np.zeros(0, np.int64)  # force a full resend of own points
+    delta = link._submap_delta()
+    assert len(delta.point_ids) == own
+    # A later block removes two of them and moves the keyframe.
+    block = _foreign(link, n=0, removed=[0, 1])
+    link.apply_update(_update(link, 2, np.eye(4), foreign=[block], members=("a0", "b1"),
+                              epoch=0))
+    assert len(pm) == own + 3
+
+
+def test_group_decoder_loaded_and_rounds_tracked() -> None:
+    link = _link()
+    _run(link, 0, 1)
+    dec = link.odometry.decoders
+    tensors = {k: np.full(tuple(v.shape), 0.25, np.float32) for k, v in dec.state_dict().items()}
+    other = GroupDecoder(group_id="g2", round=4, members=["b1"], n_samples=10, tensors=tensors)
+    assert not link.apply_decoder(other)  # another group's: kept for later
+    mine = GroupDecoder(group_id="a0", round=1, members=["a0", "b1"], n_samples=10,
+                        tensors=tensors)
+    assert link.apply_decoder(mine) and link.round == 1
+    for v in dec.state_dict().values():
+        assert torch.all(v == 0.25)
+    assert not link.apply_decoder(mine)  # same round again: ignored
+    # Joining g2 loads its waiting decoder; later weights answer g2's round.
+    link.apply_update(_update(link, 1, np.eye(4), group="g2", members=("a0", "b1"), epoch=1))
+    assert link.group_id == "g2" and link.round == 4
+    msgs = _run(link, 1, 6)
+    weights = [m for m in msgs if isinstance(m, DecoderWeights)][0]
+    assert weights.group_id == "g2" and weights.round == 4
+
+
+def test_image_request_answered_from_the_keyframe_store(warm) -> None:
+    link, _ = warm
+    reply = link.answer_image(KeyframeImageRequest(agent_id="a0", kf_id=1))
+    assert isinstance(reply, KeyframeImage)
+    small = link.odometry.keyframes.intrinsics_small
+    assert (reply.width, reply.height) == (small.width, small.height)
+    np.testing.assert_allclose(reply.depth_metres(), link.odometry.keyframes.get(1).depth_small,
+                               atol=1e-3)
+    protocol.decode(protocol.encode(reply), expected=KeyframeImage)
+    missing = link.answer_image(KeyframeImageRequest(agent_id="a0", kf_id=99))
+    assert isinstance(missing, ErrorReply) and missing.code == "not_found"
