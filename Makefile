@@ -12,7 +12,7 @@ STAMP := $(VENV)/.cpslam-installed
 .PHONY: help venv test test-fast lint format demo clean
 
 help:
-	@echo "make test      set up .venv if needed, run the whole test suite"
+	@echo "make test      set up .venv if needed, ruff, then the whole test suite"
 	@echo "make test-fast the suite without tests marked slow"
 	@echo "make demo      set up .venv if needed, run the two-agent demo"
 	@echo "make lint      ruff"
@@ -35,6 +35,7 @@ $(STAMP): pyproject.toml
 	@touch $(STAMP)
 
 test: $(STAMP)
+	$(BIN)/ruff check .
 	$(BIN)/python -m pytest $(PYTEST_ARGS)
 
 test-fast: $(STAMP)
