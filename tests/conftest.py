@@ -13,6 +13,14 @@ KITCHEN = SHARED_DATA / "7scenes-kitchen-0-299"
 
 def pytest_configure(config: pytest.Config) -> None:
     config.addinivalue_line("markers", "loopback: real processes over Zenoh TCP on 127.0.0.1")
+    # The field's tensors are small: on a 2-core machine one torch thread is several times
+    # faster than two (measured; see docs/architecture.md), and tests then run alike in CI.
+    try:
+        import torch
+
+        torch.set_num_threads(1)
+    except ImportError:  # pragma: no cover
+        pass
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
