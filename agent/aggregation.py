@@ -5,17 +5,20 @@ cluster centres and sums the residuals per centre; intra-normalisation then a gl
 Untrained, the soft assignment is the one NetVLAD is initialised with: a 1x1 convolution with
 weight 2·alpha·c_k and bias -alpha·|c_k|², i.e. a softmax over -alpha·|x - c_k|² (the |x|² term
 cancels). GeM (Radenovic et al., TPAMI 2018) is the generalised mean (mean x^p)^(1/p) per channel.
+Untrained centres come from `kmeans` over local features of `procedural_images`.
 """
 
 from __future__ import annotations
 
 import math
 
+import cv2
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-__all__ = ["GeM", "NetVLAD", "assignment_alpha", "kmeans"]
+__all__ = ["GeM", "NetVLAD", "assignment_alpha", "kmeans", "procedural_images"]
 
 
 class NetVLAD(nn.Module):
@@ -117,3 +120,51 @@ def assignment_alpha(x: torch.Tensor, centroids: torch.Tensor, ratio: float = 0.
     two = d2.topk(2, dim=1, largest=False).values
     gap = (two[:, 1] - two[:, 0]).mean().item()
     return -math.log(ratio) / max(gap, 1e-12)
+
+
+def procedural_images(count: int, size: int, seed: int = 0) -> np.ndarray:
+    """Deterministic indoor-like RGB uint8 images [count, size, size, 3]: shaded walls, boxes,
+    lines, discs and value noise, so the local features span edges, corners, flat and textured
+    regions in many colours."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:size, 0:size].astype(np.float32) / size
+    out = np.empty((count, size, size, 3), np.uint8)
+    for i in range(count):
+        base = rng.uniform(40, 220, 3)
+        grad = rng.uniform(-60, 60, 2)
+        img = base + (grad[0] * (xx - 0.5) + grad[1] * (yy - 0.5))[..., None]
+        noise = cv2.resize(
+            rng.normal(0, 1, (8, 8)).astype(np.float32), (size, size), interpolation=cv2.INTER_CUBIC
+        )
+        img = img + rng.uniform(0, 25) * noise[..., None]
+        img = np.clip(img, 0, 255).astype(np.uint8).copy()
+        for _ in range(rng.integers(3, 12)):
+            colour = tuple(int(v) for v in rng.integers(0, 256, 3))
+            shape = rng.integers(0, 3)
+            p0 = rng.integers(0, size, 2)
+            if shape == 0:
+                p1 = np.clip(p0 + rng.integers(size // 16, size // 2, 2), 0, size - 1)
+                cv2.rectangle(
+                    img,
+                    tuple(int(v) for v in p0),
+                    tuple(int(v) for v in p1),
+                    colour,
+                    -1 if rng.random() < 0.7 else int(rng.integers(1, 4)),
+                )
+            elif shape == 1:
+                p1 = rng.integers(0, size, 2)
+                cv2.line(
+                    img,
+                    tuple(int(v) for v in p0),
+                    tuple(int(v) for v in p1),
+                    colour,
+                    int(rng.integers(1, 5)),
+                )
+            else:
+                cv2.circle(
+                    img, tuple(int(v) for v in p0), int(rng.integers(3, size // 6)), colour, -1
+                )
+        fine = rng.normal(0, rng.uniform(0, 12), (size, size, 1))
+        img = np.clip(cv2.GaussianBlur(img, (3, 3), 0) + fine, 0, 255)
+        out[i] = img.astype(np.uint8)
+    return out

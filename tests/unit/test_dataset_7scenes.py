@@ -66,7 +66,7 @@ def test_info_on_kitchen(kitchen_path: Path) -> None:
 
     result = CliRunner().invoke(app, ["info", str(kitchen_path), "--json", "--samples", "3"])
     assert result.exit_code == 0, result.output
-    summary = json.loads(result.output)
+    summary = json.loads(result.stdout)
     assert summary["format"] == "7scenes" and summary["frames"] == 300
     assert (summary["width"], summary["height"]) == (640, 480)
     assert 0.3 < summary["depth"]["min_m"] < summary["depth"]["max_m"] < 5.0

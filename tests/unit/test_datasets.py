@@ -477,7 +477,7 @@ def test_info_text_and_json(replica_root: Path) -> None:
     assert "32x24" in result.output and "ground truth yes" in result.output
     result = runner.invoke(_app(), ["info", str(replica_root), "--json", "--samples", "2"])
     assert result.exit_code == 0, result.output
-    summary = json.loads(result.output)
+    summary = json.loads(result.stdout)
     assert summary["frames"] == N and summary["format"] == "replica"
     assert summary["depth"]["sampled_indices"] == [0, 4]
     assert summary["depth"]["min_m"] == pytest.approx(1.0, abs=1e-3)
@@ -508,7 +508,7 @@ def test_info_camera_overrides_from_the_command_line(tmp_path) -> None:
     seq = str(out.agent_dirs[0])
     result = CliRunner().invoke(app, [seq, "--camera", "fx=100", "--camera", "cx=30", "--json"])
     assert result.exit_code == 0, result.output
-    data = __import__("json").loads(result.output)
+    data = json.loads(result.stdout)
     assert data["intrinsics"]["fx"] == 100 and data["intrinsics"]["cx"] == 30
     result = CliRunner().invoke(app, [seq, "--camera", "fx"])
     assert result.exit_code == 2 and "expected KEY=NUMBER" in result.output

@@ -118,21 +118,30 @@ def test_weights_round_trip(netvlad: DescriptorExtractor, tmp_path: Path, suffix
     if suffix == ".npz":
         netvlad.save_weights(path)
     else:
-        torch.save({"centroids": netvlad.pool.centroids,
-                    "conv.weight": netvlad.pool.conv_weight[..., None, None],
-                    "conv.bias": netvlad.pool.conv_bias}, path)
+        torch.save(
+            {
+                "centroids": netvlad.pool.centroids,
+                "conv.weight": netvlad.pool.conv_weight[..., None, None],
+                "conv.bias": netvlad.pool.conv_bias,
+            },
+            path,
+        )
     loaded = DescriptorExtractor("netvlad", image_size=SIZE, layer="stage5", weights=path)
     images = list(procedural_images(2, 100, seed=4))
     assert loaded.dim == netvlad.dim
-    np.testing.assert_allclose(loaded.compute_batch(images), netvlad.compute_batch(images),
-                               atol=1e-5)
+    np.testing.assert_allclose(
+        loaded.compute_batch(images), netvlad.compute_batch(images), atol=1e-5
+    )
 
 
 def test_gem_weights_with_projection(gem: DescriptorExtractor, tmp_path: Path) -> None:
     rng = np.random.default_rng(0)
     path = tmp_path / "gem.npz"
-    np.savez(path, p=np.array(2.0), **{"pca.weight": rng.normal(size=(64, 1280)),
-                                       "pca.bias": np.zeros(64)})
+    np.savez(
+        path,
+        p=np.array(2.0),
+        **{"pca.weight": rng.normal(size=(64, 1280)), "pca.bias": np.zeros(64)},
+    )
     loaded = DescriptorExtractor("gem", image_size=SIZE, layer="head", weights=path)
     d = loaded.compute(procedural_images(1, 100, seed=1)[0])
     assert loaded.dim == 64 and d.shape == (64,)
@@ -182,11 +191,27 @@ def test_defaults_are_the_measured_choice() -> None:
     assert ex.dim == STAGES[DEFAULT_LAYER][0]
 
 
-def test_long_descriptors_are_projected() -> None:
+def test_long_descriptors_are_sketched_and_the_sketch_round_trips(tmp_path: Path) -> None:
     ex = DescriptorExtractor("netvlad", clusters=8, image_size=64, layer="head", max_dim=512)
-    d = ex.compute(procedural_images(1, 64, seed=2)[0])
-    assert ex.dim == 512 and d.shape == (512,)
-    assert abs(np.linalg.norm(d) - 1) < 1e-5
+    images = list(procedural_images(2, 64, seed=2))
+    d = ex.compute_batch(images)
+    assert ex.dim == 512 and d.shape == (2, 512)
+    np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-5)
+    path = ex.save_weights(tmp_path / "sketched.npz")
+    loaded = DescriptorExtractor("netvlad", image_size=64, weights=path, seed=99)
+    assert loaded.dim == 512
+    np.testing.assert_allclose(loaded.compute_batch(images), d, atol=1e-5)
+
+
+def test_count_sketch_preserves_cosine_roughly() -> None:
+    rng = np.random.default_rng(0)
+    x = torch.from_numpy(rng.normal(size=(20, 8192))).float()
+    x[10:] = x[:10] + 0.8 * torch.from_numpy(rng.normal(size=(10, 8192))).float()
+    bucket, sign = descriptor_module._count_sketch(8192, 1024, seed=0)
+    y = torch.zeros(20, 1024).index_add_(1, bucket, x * sign)
+    cos = torch.nn.functional.cosine_similarity
+    err = (cos(x[:10], x[10:]) - cos(y[:10], y[10:])).abs()
+    assert err.max() < 0.1
 
 
 def test_from_config() -> None:
@@ -220,8 +245,9 @@ def test_kmeans_finds_separated_clusters_deterministically() -> None:
 
 def test_pooling_layers() -> None:
     feat = torch.rand(2, 4, 3, 3) + 0.1
-    np.testing.assert_allclose(GeM(1.0)(feat), torch.nn.functional.normalize(
-        feat.mean(dim=(2, 3)), dim=1), atol=1e-6)
+    np.testing.assert_allclose(
+        GeM(1.0)(feat), torch.nn.functional.normalize(feat.mean(dim=(2, 3)), dim=1), atol=1e-6
+    )
     vlad = NetVLAD(torch.nn.functional.normalize(torch.randn(5, 4), dim=1), alpha=10.0)
     out = vlad(feat)
     assert out.shape == (2, 20) and vlad.dim == 20
