@@ -8,7 +8,15 @@ from typing import Annotated
 
 import typer
 
-from cpslam.common.config.cli import ConfigOpt, DeviceOpt, PresetOpt, SeedOpt, SetOpt
+from cpslam.common.config.cli import (
+    ConfigOpt,
+    ConnectOpt,
+    DeviceOpt,
+    PresetOpt,
+    SeedOpt,
+    SessionOpt,
+    SetOpt,
+)
 
 logger = logging.getLogger("cpslam.agent")
 
@@ -21,7 +29,19 @@ def agent(
     standalone: Annotated[
         bool, typer.Option("--standalone", help="Run without a server (odometry and mapping only).")
     ] = False,
-    agent_id: Annotated[int, typer.Option("--agent-id", help="Agent id (0, 1, …).")] = 0,
+    agent_id: Annotated[
+        str, typer.Option("--agent-id", help="Agent id: 1-64 letters, digits, '_' or '-'.")
+    ] = "0",
+    connect: ConnectOpt = None,
+    session: SessionOpt = None,
+    wait_timeout: Annotated[
+        float, typer.Option("--wait-timeout", min=0.0,
+                            help="Seconds to wait for the server before giving up (exit 3).")
+    ] = 300.0,
+    ack_timeout: Annotated[
+        float, typer.Option("--ack-timeout", min=0.0, help="Seconds to wait at the end for the "
+                            "server to acknowledge everything (else exit 4).")
+    ] = 120.0,
     preset: PresetOpt = "cpu",
     config_file: ConfigOpt = None,
     sets: SetOpt = None,
@@ -44,13 +64,20 @@ def agent(
     no_progress: Annotated[bool, typer.Option("--no-progress", help="No progress bar.")] = False,
     verbose: Annotated[int, typer.Option("--verbose", "-v", count=True)] = 0,
 ) -> None:
-    """Track the camera of one RGB-D sequence and build its neural point map.
+    """Track the camera of one RGB-D sequence, build its neural point map, and (unless
+    --standalone) stream it to a cpslam-server that merges it with other agents' maps.
 
-    Writes RUN/config.yaml and RUN/agent_<id>/: trajectory.tum (every frame), map.ply,
-    state.pt (reload with `cpslam render` or `--resume`) and metrics.json. Ctrl-C stops the run
-    and saves what exists.
+    Writes RUN/config.yaml and RUN/agent_<id>/: trajectory.tum (every frame, in the agent's
+    working frame), map.ply, state.pt (reload with `cpslam render` or `--resume`) and
+    metrics.json (with bytes sent per key expression when networked). Ctrl-C stops the run and
+    saves what exists. Networked: waits for the server, resends what was not acknowledged after
+    a server restart, exits 0 once everything is acknowledged (3: no server, 4: unacknowledged).
 
     Examples:
+
+      cpslam-agent --seq runs/data/apartment/agent_0 --agent-id 0 --connect tcp/127.0.0.1:7447
+
+      cpslam-agent --seq /data/office --agent-id robot-2 --connect tcp/10.0.0.5:7447 --session lab
 
       cpslam-agent --seq runs/data/room/agent_0 --standalone --out runs/room
 
@@ -58,23 +85,32 @@ def agent(
 
       cpslam-agent --seq data/office0 --standalone --preset paper --device cuda
     """
-    from cpslam.common.config.cli import config_or_exit
+    from cpslam.common.config.cli import config_or_exit, transport_sets
     from cpslam.common.datasets import DatasetError
     from cpslam.common.device import resolve_device
     from cpslam.common.logs import setup_logging
     from cpslam.common.rundir import create_run_dir
+    from cpslam.protocol import ProtocolError, keys
 
-    setup_logging(max(verbose, 1))
-    if not standalone:
-        typer.echo("error: only --standalone is available in this version: the networked agent "
-                   "(connecting to cpslam-server) is not built yet", err=True)
+    setup_logging(max(verbose, 1), daemon=not standalone)
+    try:
+        keys.check_id(agent_id, "--agent-id")
+    except ProtocolError as err:
+        typer.echo(f"error: {err}", err=True)
+        raise typer.Exit(2) from None
+    if standalone and (connect or session):
+        typer.echo("error: --connect/--session make no sense with --standalone", err=True)
         raise typer.Exit(2)
-    cfg = config_or_exit(preset, config_file, sets, device, seed)
+    cfg = config_or_exit(preset, config_file, [*(sets or []), *transport_sets(
+        session, None, connect)], device, seed)
     try:
         torch_device = resolve_device(cfg.run.device)
     except ValueError as err:
         typer.echo(f"error: {err}", err=True)
         raise typer.Exit(2) from None
+    if resume is not None and not standalone:
+        typer.echo("error: --resume works with --standalone only", err=True)
+        raise typer.Exit(2)
     if resume is not None and not resume.is_file():
         typer.echo(f"error: --resume {resume}: no such file", err=True)
         raise typer.Exit(2)
@@ -92,14 +128,44 @@ def agent(
         torch.set_num_threads(cfg.run.num_threads)
     run_dir = out if out is not None else create_run_dir(cfg.run.out, cfg.run.name)
     run_dir.mkdir(parents=True, exist_ok=True)
-    logger.info("agent %d: %s (%s, %d frames) on %s → %s", agent_id, seq, sequence.format,
+    logger.info("agent %s: %s (%s, %d frames) on %s → %s", agent_id, seq, sequence.format,
                 len(sequence), torch_device, run_dir)
+    if not standalone:
+        raise typer.Exit(_networked(cfg, sequence, agent_id, run_dir, torch_device, wait_timeout,
+                                    ack_timeout, not no_progress))
     result = run_standalone(cfg, sequence, run_dir, torch_device, agent_id=agent_id,
                             resume=resume, show_progress=not no_progress)
     typer.echo(f"{result.frames_done}/{result.frames_total} frames in {result.wall_time_s:.1f} s "
                f"→ {result.agent_dir}")
     if result.interrupted:
         raise typer.Exit(130)
+
+
+def _networked(cfg, sequence, agent_id: str, run_dir: Path, device: str, wait_timeout: float,
+               ack_timeout: float, show_progress: bool) -> int:
+    """Run against a server with SIGINT/SIGTERM stopping the stream cleanly."""
+    import signal
+    import threading
+
+    from cpslam.agent.daemon import run_networked
+    from cpslam.common.config import save_config
+    from cpslam.common.logs import log_to_file
+
+    log_to_file(run_dir / f"agent_{agent_id}" / "agent.log")
+    save_config(cfg, run_dir / f"agent_{agent_id}" / "config.yaml")
+    stop = threading.Event()
+
+    def handler(signum: int, _frame: object) -> None:
+        if stop.is_set():
+            raise SystemExit(130)
+        logger.info("%s: stopping after this frame (again to exit at once)",
+                    signal.Signals(signum).name)
+        stop.set()
+
+    signal.signal(signal.SIGINT, handler)
+    signal.signal(signal.SIGTERM, handler)
+    return run_networked(cfg, sequence, agent_id, run_dir, device, wait_timeout, ack_timeout,
+                         show_progress, stop)
 
 
 def main() -> None:

@@ -67,7 +67,7 @@ class DescriptorExtractor:
 
     def __init__(
         self,
-        aggregation: Literal["netvlad", "gem"] = "gem",
+        aggregation: Literal["netvlad", "gem"] = "netvlad",
         clusters: int = 8,
         gem_p: float = 1.0,
         image_size: int = 224,
@@ -152,9 +152,7 @@ class DescriptorExtractor:
             weights=cfg.weights,
             device=device,
             seed=seed,
-            # The section may not have a `layer` field (yet); then the weights file or
-            # DEFAULT_LAYER decides.
-            layer=getattr(cfg, "layer", None),
+            layer=cfg.layer,
         )
 
     @property

@@ -6,24 +6,24 @@ sends it, and the shared decoders of every group: an agent that joins a group le
 in the same step as that group's decoder is sent, so it filters instead of resubscribing);
 `step` processes one frame and publishes what the link produced; `poll` applies, without
 blocking, what arrived (acks trim the outbox, updates move the world, decoders load).
-`run` is the whole standalone-daemon loop; ``cpslam run`` drives `step`/`poll` itself in
-lock-step for determinism.
+`cpslam.agent.daemon.run_networked` is the daemon loop around it; ``cpslam run`` drives
+`step`/`poll` itself in lock-step for determinism.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import threading
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import torch
-
 from cpslam import protocol
 from cpslam.agent.link import AgentLink
 from cpslam.agent.odometry import FrameResult, Odometry
 from cpslam.agent.standalone import processing_frames, write_agent_outputs
+from cpslam.common.rundir import write_json
 from cpslam.protocol import (
     Ack,
     ErrorReply,
@@ -162,39 +162,22 @@ class AgentNode:
         self.send(pending)
         return len(pending)
 
-    def wait_acked(self, timeout_s: float = 10.0, resend_every_s: float = 2.0) -> bool:
-        """Poll until the outbox is empty or `timeout_s` passed; resends what is pending
-        every `resend_every_s`. Returns True when everything was acknowledged."""
-        deadline = time.monotonic() + timeout_s
-        next_resend = time.monotonic() + resend_every_s
-        while self.link.outbox and time.monotonic() < deadline:
-            if not self.poll():
-                time.sleep(0.02)
-            if time.monotonic() >= next_resend and self.link.outbox:
-                self.resend()
-                next_resend = time.monotonic() + resend_every_s
-        if self.link.outbox:
-            logger.warning("agent %s: %d messages never acknowledged", self.agent_id,
-                           len(self.link.outbox))
-        return not self.link.outbox
+    def wait_for_server_message(self, timeout_s: float) -> bool:
+        """Block until something from the server is queued or `timeout_s` passed."""
+        return self._server_sub.wait(timeout_s) or len(self._decoder_sub) > 0
 
-    def run(self, ack_timeout_s: float = 30.0) -> None:
-        """The daemon loop: every frame, apply what arrived, then step; flush at the end and
-        wait (bounded) for the server to acknowledge everything; write the outputs."""
-        torch.manual_seed(self.cfg.run.seed)
-        for frame in self._frames:
-            self.poll()
-            self.step(frame)
-        self.flush()
-        self.wait_acked(ack_timeout_s)
-        self.write_outputs()
-
-    def write_outputs(self) -> Path:
-        """``run_dir/agent_<id>/`` as a standalone run writes it, plus link statistics."""
+    def write_outputs(self, extra: dict[str, Any] | None = None) -> Path:
+        """``run_dir/agent_<id>/`` as a standalone run writes it; `extra` (e.g. bytes sent per
+        key expression) is added to its metrics.json."""
         agent_dir = self.run_dir / f"agent_{self.agent_id}"
         agent_dir.mkdir(parents=True, exist_ok=True)
         write_agent_outputs(self.odometry, agent_dir, self.results, self.wall_s, False,
                             str(self.device))
+        if extra:
+            metrics_path = agent_dir / "metrics.json"
+            metrics = json.loads(metrics_path.read_text())
+            metrics.update(extra)
+            write_json(metrics_path, metrics)
         return agent_dir
 
     # ------------------------------------------------------------------------- helpers

@@ -81,7 +81,7 @@ def run_standalone(
     seq: RGBDSequence,
     run_dir: Path,
     device: str,
-    agent_id: int = 0,
+    agent_id: str = "0",
     resume: Path | None = None,
     show_progress: bool = True,
 ) -> StandaloneResult:
@@ -95,7 +95,8 @@ def run_standalone(
     save_config(cfg, run_dir / "config.yaml")
     torch.manual_seed(cfg.run.seed)
     intrinsics, _ = processing_frames(seq, cfg.camera.downscale)
-    odometry = Odometry.from_config(cfg, intrinsics, device, agent_id=agent_id)
+    # The map's agent key is local to this process: the own agent is always 0.
+    odometry = Odometry.from_config(cfg, intrinsics, device, agent_id=0)
     start = 0
     if resume is not None:
         odometry.load_state_dict(torch.load(resume, map_location=device, weights_only=True))

@@ -19,6 +19,8 @@ from cpslam.common.logs import setup_logging
 from cpslam.common.render import render
 from cpslam.common.synth.cli import synth as dataset_synth
 from cpslam.run import run as run_command
+from cpslam.server.client import finalise as server_finalise
+from cpslam.server.client import status as server_status
 
 app = typer.Typer(
     no_args_is_help=True,
@@ -40,6 +42,8 @@ eval_app.command("recon")(eval_recon)
 config_app.command("show")(config_show)
 app.command("render")(render)
 app.command("run")(run_command)
+app.command("status")(server_status)
+app.command("finalise")(server_finalise)
 config_app.command("presets")(config_presets)
 
 

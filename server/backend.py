@@ -119,6 +119,10 @@ class Backend:
         finetune_views: most keyframe images pulled for one fine-tune.
         share_every_s: how often merged groups get the other members' new points.
         seed: seed of every fine-tune.
+        verify_budget_s: a step stops verifying candidates after this many (wall-clock)
+            seconds and leaves the rest for the next step, so a daemon stays responsive (acks,
+            updates) while a backlog is worked off. None (lock-step runs): no limit, so the
+            work done per step does not depend on the machine's speed.
     """
 
     def __init__(
@@ -143,7 +147,9 @@ class Backend:
         finetune_views: int = 8,
         share_every_s: float = 10.0,
         seed: int = 0,
+        verify_budget_s: float | None = None,
     ) -> None:
+        self.verify_budget_s = verify_budget_s
         self.loop_cfg, self.fed_cfg = loop, federation
         self.pg_cfg, self.refine_cfg = pose_graph, refinement
         self.fetch_image, self.now = fetch_image, now
@@ -226,7 +232,14 @@ class Backend:
         for agent, kf in self.registry.take_new_keyframes():
             self._query(agent, kf)
         dirty: dict[str, bool] = {}
+        # Pairs that can merge two groups go first: a merge changes what every agent does.
+        self._candidates.sort(key=lambda c: (self.groups.same_group(c.agent_a, c.agent_b)
+                                             or c.kind != "fine"))
+        t0 = time.perf_counter()
         while self._candidates:
+            if (self.verify_budget_s is not None
+                    and time.perf_counter() - t0 > self.verify_budget_s):
+                break
             cand = self._candidates.pop(0)
             record = self._verify(cand)
             if record is None or not record.accepted:
@@ -236,6 +249,8 @@ class Backend:
                     continue  # a coarse pair only becomes an edge once its groups merge
                 out += self._merge(record)
                 record.merged = True
+                dirty[self.groups.group_of(cand.agent_a).group_id] = True
+                break  # publish the merge now; the remaining candidates wait for next step
             dirty[self.groups.group_of(cand.agent_a).group_id] = True
         for gid in dirty:
             if gid in self.groups.groups:
@@ -484,7 +499,7 @@ class Backend:
         first = group.decoder is None
         if not first and (msg.group_id != group.group_id or int(msg.round) != group.round):
             self.registry.dropped["decoder weights for a past round or group"] += 1
-            logger.info("round: %s sent weights for %s#%d, group is at %s#%d", agent,
+            logger.debug("round: %s sent weights for %s#%d, group is at %s#%d", agent,
                         msg.group_id, msg.round, group.group_id, group.round)
             return
         rnd = self.rounds.get(group.group_id)

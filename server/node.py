@@ -15,6 +15,7 @@ that needs lock-step determinism (``cpslam run``) calls `poll` itself instead.
 from __future__ import annotations
 
 import logging
+import os
 import threading
 import time
 from collections import Counter
@@ -55,12 +56,23 @@ class ServerNode:
         bus: an open bus (the node does not close it).
         run_dir: where `finalise` exports.
         image_timeout_s: how long a keyframe image query may take.
+        state_path: where the accepted state is persisted (None: nothing is persisted). When
+            set, acknowledgements are held back until the state that contains the acknowledged
+            messages is on disk, so an agent never drops a message the server could lose; a
+            state already there is loaded by `start` (a restarted server goes on from it).
+        persist_every_s: at most one state write per this many seconds (acks wait that long).
         backend_kwargs: passed to `Backend.from_config` (e.g. ``now`` or ``refine_pose``).
     """
 
     def __init__(self, cfg: CpslamConfig, bus: Bus, run_dir: str | Path,
-                 image_timeout_s: float = 10.0, **backend_kwargs: Any) -> None:
+                 image_timeout_s: float = 10.0, state_path: str | Path | None = None,
+                 persist_every_s: float = 1.0, **backend_kwargs: Any) -> None:
         self.cfg, self.bus, self.run_dir = cfg, bus, Path(run_dir)
+        self.state_path = Path(state_path) if state_path is not None else None
+        self.persist_every_s = float(persist_every_s)
+        self._held_acks: list[Outgoing] = []
+        self._last_persist = float("-inf")
+        self.restored = False
         self.session = keys.check_id(cfg.transport.session, "transport.session")
         self.image_timeout_s = image_timeout_s
         self.backend = Backend.from_config(cfg, self.fetch_image, **backend_kwargs)
@@ -80,6 +92,8 @@ class ServerNode:
         """Declare presence, subscriptions, the status queryable and the liveliness watch."""
         queue = max(self.cfg.transport.queue_size, 1024)
         s = self.session
+        if self.state_path is not None and self.state_path.is_file():
+            self._restore(self.state_path)
         self._subs = [self.bus.subscribe(keys.all_agents(s), queue_size=queue),
                       self.bus.subscribe(keys.server_control(s), queue_size=16)]
         self._handles = [
@@ -106,7 +120,11 @@ class ServerNode:
         down. Returns the final result (None on shutdown)."""
         while self.control is None and not (stop is not None and stop.is_set()):
             if not self.poll():
-                time.sleep(poll_s)
+                # Idle: block on the agents' queue (not a sleep) so a message is handled as
+                # soon as it arrives; control and liveliness are seen within poll_s.
+                self._subs[0].wait(timeout=poll_s)
+        if self._held_acks:
+            self.persist()
         if self.control is not None and self.control.action == "shutdown":
             logger.info("shutdown requested: %s", self.control.reason)
             return None
@@ -140,13 +158,34 @@ class ServerNode:
         batch.sort(key=lambda item: item[:2])
         with self._lock:
             for _, _, msg, nbytes in batch:
-                self.publish(self.backend.handle(msg, nbytes))
+                out = self.backend.handle(msg, nbytes)
+                if self.state_path is not None:
+                    self._held_acks += [o for o in out if isinstance(o.message, Ack)]
+                    out = [o for o in out if not isinstance(o.message, Ack)]
+                self.publish(out)
             try:
                 self.publish(self.backend.step())
             except Exception:  # noqa: BLE001 - the server outlives a failing step
                 self.step_errors += 1
                 logger.exception("back-end step failed (%d so far)", self.step_errors)
+            if self._held_acks and time.monotonic() - self._last_persist >= self.persist_every_s:
+                self.persist()
         return len(batch)
+
+    def persist(self) -> None:
+        """Write the accepted state (atomically), then release the acks it covers."""
+        if self.state_path is None:
+            return
+        import torch
+
+        with self._lock:
+            self.state_path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = self.state_path.with_suffix(".tmp")
+            torch.save(self.backend.state_dict(), tmp)
+            os.replace(tmp, self.state_path)
+            self._last_persist = time.monotonic()
+            acks, self._held_acks = self._held_acks, []
+            self.publish(acks)
 
     def publish(self, out: list[Outgoing]) -> None:
         """Encode and put each outgoing message on its key (too large: logged, dropped)."""
@@ -190,6 +229,7 @@ class ServerNode:
         """Final optimisation and export into the run folder (once)."""
         with self._lock:
             if self.finalised is None:
+                self.persist()
                 self.publish(self.backend.step())
                 self.finalised = self.backend.finalise()
                 self.finalised.metrics["bus"] = {"dropped": dict(self.dropped),
@@ -198,6 +238,21 @@ class ServerNode:
         return self.finalised
 
     # ------------------------------------------------------------------------- helpers
+
+    def _restore(self, path: Path) -> None:
+        import torch
+
+        try:
+            state = torch.load(path, weights_only=True)
+            self.backend.load_state_dict(state)
+        except Exception as exc:  # noqa: BLE001 - a bad state file must not be half-loaded
+            raise RuntimeError(f"{path}: cannot restore the server state ({exc}); move the "
+                               "file away to start this run afresh") from exc
+        self.restored = True
+        status = self.backend.status()
+        logger.info("restored server state from %s: agents %s, groups %d", path,
+                    ", ".join(sorted(status.get("agents", {}))) or "none",
+                    len(status.get("groups", {})))
 
     def _decode(self, key: str, payload: bytes, expected: Any) -> Any:
         try:

@@ -99,6 +99,18 @@ class Subscription:
             )
         return self._take(timeout)
 
+    def wait(self, timeout: float | None = None) -> bool:
+        """Block until a sample is queued (True) or `timeout` s passed or closed (False); the
+        sample stays queued. For loops that serve several queues without busy-waiting."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        with self._cond:
+            while not self._queue and not self._closed:
+                remaining = None if deadline is None else deadline - time.monotonic()
+                if remaining is not None and remaining <= 0:
+                    return False
+                self._cond.wait(remaining)
+            return bool(self._queue)
+
     def __iter__(self) -> Iterator[Sample]:
         while True:
             sample = self.get(None)

@@ -78,3 +78,28 @@ def presets() -> None:
     for name in available_presets():
         typer.echo(f"# --- {name} ---")
         typer.echo(preset_text(name).rstrip() or "# (the defaults: the paper's values)")
+
+
+ConnectOpt = Annotated[
+    list[str] | None,
+    typer.Option("--connect", help="Zenoh endpoint to connect to, e.g. tcp/10.0.0.5:7447 "
+                 "(repeatable; overrides transport.connect)."),
+]
+SessionOpt = Annotated[
+    str | None,
+    typer.Option("--session", help="Session name shared by the server and its agents "
+                 "(overrides transport.session)."),
+]
+
+
+def transport_sets(session: str | None = None, listen: list[str] | None = None,
+                   connect: list[str] | None = None) -> list[str]:
+    """`--set` items for the transport flags the daemons share (empty ones are left out)."""
+    out = []
+    if session is not None:
+        out.append(f"transport.session={session}")
+    if listen:
+        out.append("transport.listen=" + ",".join(listen))
+    if connect:
+        out.append("transport.connect=" + ",".join(connect))
+    return out

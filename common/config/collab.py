@@ -32,10 +32,12 @@ class PlaceRecognitionConfig(Section):
     """Image backbone producing the local feature map."""
     aggregation: Literal["netvlad", "gem"] = "netvlad"
     """Pooling of the feature map into one descriptor: NetVLAD (the paper) or GeM."""
-    clusters: PositiveInt = 32
-    """Number of NetVLAD clusters."""
-    gem_p: PositiveFloat = 3.0
-    """Exponent p of GeM pooling."""
+    layer: Literal["stage4", "stage5", "stage6", "stage7", "head"] | None = None
+    """Backbone feature map aggregated; null = the one named in `weights`, else stage6."""
+    clusters: PositiveInt = 8
+    """Number of NetVLAD clusters (8 measured best untrained; docs/place_recognition.md)."""
+    gem_p: PositiveFloat = 1.0
+    """Exponent p of GeM pooling (1 = average pooling, measured best untrained)."""
     image_size: int = Field(default=224, ge=32)
     """Images are resized to image_size x image_size before the backbone."""
     weights: Path | None = None

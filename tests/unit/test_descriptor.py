@@ -186,9 +186,15 @@ def test_weights_file_names_the_layer(netvlad: DescriptorExtractor, tmp_path: Pa
 
 
 def test_defaults_are_the_measured_choice() -> None:
+    from cpslam.common.config import load_config
+
     ex = DescriptorExtractor(image_size=64)
-    assert (ex.aggregation, ex.layer, ex.pool.p) == ("gem", DEFAULT_LAYER, 1.0)
-    assert ex.dim == STAGES[DEFAULT_LAYER][0]
+    assert (ex.aggregation, ex.layer) == ("netvlad", DEFAULT_LAYER)
+    assert ex.dim == 8 * STAGES[DEFAULT_LAYER][0]
+    # The config's defaults build the same extractor.
+    cfg = load_config("cpu").place_recognition
+    from_cfg = DescriptorExtractor.from_config(cfg.model_copy(update={"image_size": 64}))
+    assert (from_cfg.aggregation, from_cfg.layer, from_cfg.dim) == ("netvlad", "stage6", ex.dim)
 
 
 def test_long_descriptors_are_sketched_and_the_sketch_round_trips(tmp_path: Path) -> None:

@@ -1,0 +1,173 @@
+"""The networked agent: one sequence streamed to a `cpslam-server` over Zenoh.
+
+1. Open a client session to the server's endpoint, retrying (with a message) until
+   ``wait_timeout_s``: agents may start before the server.
+2. Wait until the server's liveliness token is seen.
+3. For every frame: apply what the server pushed, track and map, publish.
+4. When the server's token comes back after it left (restart, network loss), resend every
+   message it has not acknowledged (the outbox); the server drops what it already had.
+5. At the end: send the last frame poses and wait until everything is acknowledged, then
+   write ``RUN/agent_<id>/`` (as a standalone run, plus bytes sent per key expression).
+
+Exit codes: 0 done and acknowledged, 3 no server within ``wait_timeout_s``, 4 the server did
+not acknowledge everything within ``ack_timeout_s`` (outputs are written all the same),
+130 interrupted (outputs written).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from cpslam.common.bus import BusError, bus_from_config
+from cpslam.protocol import keys
+
+if TYPE_CHECKING:
+    from cpslam.agent.node import AgentNode
+    from cpslam.common.bus import Bus
+    from cpslam.common.config import CpslamConfig
+    from cpslam.common.datasets import RGBDSequence
+
+__all__ = ["EXIT_NO_SERVER", "EXIT_UNACKED", "ServerPresence", "open_client", "run_networked"]
+
+logger = logging.getLogger(__name__)
+
+EXIT_NO_SERVER = 3
+EXIT_UNACKED = 4
+
+
+class ServerPresence:
+    """Tracks the server's liveliness token; counts how often it (re)appeared."""
+
+    def __init__(self, bus: Bus, session: str) -> None:
+        self._cond = threading.Condition()
+        self.up = False
+        self.joins = 0
+        self._watch = bus.watch_liveliness(keys.alive_server(session), on_join=self._join,
+                                           on_leave=self._leave)
+
+    def _join(self, _key: str) -> None:
+        with self._cond:
+            self.up, self.joins = True, self.joins + 1
+            self._cond.notify_all()
+
+    def _leave(self, _key: str) -> None:
+        with self._cond:
+            self.up = False
+
+    def wait(self, timeout_s: float) -> bool:
+        """Block until the server is present (True) or `timeout_s` passed (False)."""
+        with self._cond:
+            return self._cond.wait_for(lambda: self.up, timeout=timeout_s)
+
+    def close(self) -> None:
+        self._watch.close()
+
+
+def open_client(cfg: CpslamConfig, wait_timeout_s: float, what: str = "agent") -> Bus | None:
+    """A client bus to the configured endpoints, retried until `wait_timeout_s`; None if the
+    server could not be reached."""
+    deadline = time.monotonic() + wait_timeout_s
+    endpoints = ", ".join(cfg.transport.connect) or "tcp/127.0.0.1:7447"
+    announced = False
+    while True:
+        try:
+            return bus_from_config(cfg.transport, "agent")
+        except BusError as err:
+            if time.monotonic() >= deadline:
+                logger.error("%s: no server at %s after %.0f s (%s)", what, endpoints,
+                             wait_timeout_s, err)
+                return None
+            if not announced:
+                logger.info("%s: waiting for the server at %s …", what, endpoints)
+                announced = True
+            time.sleep(min(1.0, max(deadline - time.monotonic(), 0.0)))
+
+
+def run_networked(cfg: CpslamConfig, seq: RGBDSequence, agent_id: str, run_dir: Path,
+                  device: str, wait_timeout_s: float = 300.0, ack_timeout_s: float = 120.0,
+                  show_progress: bool = True, stop: threading.Event | None = None) -> int:
+    """Run one agent against a server; returns the exit code (see the module docstring)."""
+    import torch
+
+    from cpslam.agent.node import AgentNode
+    from cpslam.common.logs import make_progress
+
+    bus = open_client(cfg, wait_timeout_s, f"agent {agent_id}")
+    if bus is None:
+        return EXIT_NO_SERVER
+    stop = stop or threading.Event()
+    with bus:
+        presence = ServerPresence(bus, cfg.transport.session)
+        t_wait = time.monotonic()
+        if not presence.wait(wait_timeout_s):
+            logger.error("agent %s: connected, but no cpslam-server on session %r within %.0f s",
+                         agent_id, cfg.transport.session, wait_timeout_s)
+            presence.close()
+            return EXIT_NO_SERVER
+        logger.info("agent %s: server found (%.1f s); streaming %d frames", agent_id,
+                    time.monotonic() - t_wait, len(seq))
+        node = AgentNode(cfg, seq, bus, agent_id, run_dir, device).start()
+        torch.manual_seed(cfg.run.seed)
+        joins_seen = presence.joins
+        interrupted = False
+        try:
+            with make_progress(disable=not show_progress) as bar:
+                task = bar.add_task(f"agent {agent_id}", total=len(seq), info="")
+                t0 = time.perf_counter()
+                for i, frame in enumerate(node.frames()):
+                    if stop.is_set():
+                        interrupted = True
+                        break
+                    joins_seen = _resend_after_rejoin(node, presence, joins_seen)
+                    node.poll()
+                    result = node.step(frame)
+                    fps = (i + 1) / max(time.perf_counter() - t0, 1e-9)
+                    away = "" if presence.up else "  (server away)"
+                    bar.update(task, advance=1, info=f"{fps:.2f} fps  loss "
+                               f"{result.track_loss:.4f}  outbox {len(node.link.outbox)}{away}")
+            node.flush()
+            acked = _wait_acked(node, presence, joins_seen, ack_timeout_s, stop)
+        finally:
+            node.write_outputs(extra={"bus": bus.stats(),
+                                      "unacknowledged": len(node.link.outbox),
+                                      "server_rejoins": max(presence.joins - 1, 0)})
+            node.close()
+            presence.close()
+    if interrupted or stop.is_set():
+        return 130
+    if not acked:
+        logger.error("agent %s: %d messages were never acknowledged", agent_id,
+                     len(node.link.outbox))
+        return EXIT_UNACKED
+    logger.info("agent %s: done, everything acknowledged", agent_id)
+    return 0
+
+
+def _resend_after_rejoin(node: AgentNode, presence: ServerPresence, joins_seen: int) -> int:
+    if presence.joins > joins_seen and presence.up:
+        n = node.resend()
+        logger.info("agent %s: server is back; resent %d unacknowledged messages",
+                    node.agent_id, n)
+        return presence.joins
+    return joins_seen
+
+
+def _wait_acked(node: AgentNode, presence: ServerPresence, joins_seen: int, timeout_s: float,
+                stop: threading.Event, resend_every_s: float = 5.0) -> bool:
+    """Until the outbox is empty: apply what arrives, resend after a server rejoin and,
+    in case an ack was lost, every `resend_every_s`."""
+    link = node.link
+    deadline = time.monotonic() + timeout_s
+    next_resend = time.monotonic() + resend_every_s
+    while link.outbox and time.monotonic() < deadline and not stop.is_set():
+        joins_seen = _resend_after_rejoin(node, presence, joins_seen)
+        if not node.poll():
+            node.wait_for_server_message(0.1)
+        if time.monotonic() >= next_resend and link.outbox and presence.up:
+            node.resend()
+            next_resend = time.monotonic() + resend_every_s
+    return not link.outbox

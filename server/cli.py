@@ -1,0 +1,149 @@
+"""`cpslam-server`: the collaboration back end as a daemon on a Zenoh endpoint.
+
+The server hosts the Zenoh endpoint itself (no separate router), tracks agents by liveliness,
+runs the back end and answers status queries. Everything it accepts is persisted under the
+run folder before it is acknowledged (``server_state.pt``), so a server restarted with the
+same ``--out`` goes on where it stopped and agents resend only what was never acknowledged.
+SIGINT, SIGTERM or a finalise request (`cpslam finalise`) run the final pose graph and
+refinement, write the outputs and exit 0; a second signal exits at once.
+"""
+
+from __future__ import annotations
+
+import logging
+import signal
+import threading
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from cpslam.common.config.cli import (
+    ConfigOpt,
+    ConnectOpt,
+    DeviceOpt,
+    PresetOpt,
+    SeedOpt,
+    SessionOpt,
+    SetOpt,
+)
+
+logger = logging.getLogger("cpslam.server")
+
+app = typer.Typer(add_completion=False, context_settings={"help_option_names": ["-h", "--help"]})
+
+STATE_FILE = "server_state.pt"
+
+
+@app.command()
+def server(
+    listen: Annotated[
+        list[str] | None,
+        typer.Option("--listen", help="Endpoint to listen on (repeatable; default "
+                     "tcp/0.0.0.0:7447, or transport.listen)."),
+    ] = None,
+    connect: ConnectOpt = None,
+    session: SessionOpt = None,
+    preset: PresetOpt = "cpu",
+    config_file: ConfigOpt = None,
+    sets: SetOpt = None,
+    device: DeviceOpt = None,
+    seed: SeedOpt = None,
+    out: Annotated[
+        Path | None,
+        typer.Option("--out", help="Run folder (default: run.out/run.name, timestamped). "
+                     "An existing folder with a server_state.pt is resumed."),
+    ] = None,
+    persist_every: Annotated[
+        float, typer.Option("--persist-every", min=0.0,
+                            help="Seconds between state writes (acks wait for the write).")
+    ] = 1.0,
+    verbose: Annotated[int, typer.Option("--verbose", "-v", count=True)] = 0,
+) -> None:
+    """Run the collaboration server: loops, group merges, federated decoders, pose graph.
+
+    Agents connect with `cpslam-agent --connect tcp/HOST:PORT`. Outputs (on SIGINT, SIGTERM or
+    `cpslam finalise`): RUN/trajectories/, fused_map.ply, pose_graph.g2o, metrics.json,
+    server.log.
+
+    Examples:
+
+      cpslam-server --out runs/lab
+
+      cpslam-server --listen tcp/0.0.0.0:7447 --session lab --preset cpu --out runs/lab
+
+      cpslam-server --listen tcp/0.0.0.0:7447 --connect tcp/router.local:7447
+    """
+    from cpslam.common.bus import BusError, bus_from_config
+    from cpslam.common.config import save_config
+    from cpslam.common.config.cli import config_or_exit, transport_sets
+    from cpslam.common.logs import log_to_file, setup_logging
+    from cpslam.common.rundir import create_run_dir
+
+    setup_logging(verbose, daemon=True)
+    cfg = config_or_exit(preset, config_file, [*(sets or []), *transport_sets(
+        session, listen, connect)], device, seed)
+    if cfg.transport.backend != "zenoh":
+        typer.echo("error: cpslam-server needs transport.backend zenoh (the in-memory bus is "
+                   "for `cpslam run`)", err=True)
+        raise typer.Exit(2)
+    run_dir = out if out is not None else create_run_dir(cfg.run.out, cfg.run.name)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    log_to_file(run_dir / "server.log")
+    save_config(cfg, run_dir / "config.yaml")
+    if cfg.run.num_threads:
+        import torch
+
+        torch.set_num_threads(cfg.run.num_threads)
+
+    from cpslam.server.node import ServerNode
+
+    stop = threading.Event()
+    _on_signals(stop)
+    try:
+        bus = bus_from_config(cfg.transport, "server")
+    except (BusError, ValueError) as err:
+        typer.echo(f"error: cannot open the server endpoint: {err}", err=True)
+        raise typer.Exit(1) from None
+    with bus:
+        try:
+            # A verification budget keeps acks and updates flowing while loops queue up.
+            node = ServerNode(cfg, bus, run_dir, state_path=run_dir / STATE_FILE,
+                              persist_every_s=persist_every, verify_budget_s=2.0).start()
+        except RuntimeError as err:
+            typer.echo(f"error: {err}", err=True)
+            raise typer.Exit(1) from None
+        logger.info("server listening on %s (session %s, preset %s) -> %s",
+                    ", ".join(bus.listen) or "-", cfg.transport.session, preset, run_dir)
+        try:
+            result = node.run(stop=stop)
+        finally:
+            node.close()
+    if result is None:
+        logger.info("shut down without finalising; state kept in %s", run_dir / STATE_FILE)
+        return
+    logger.info("finalised: agents %s -> %s", ", ".join(a.agent_id for a in result.agents),
+                run_dir)
+
+
+def _on_signals(stop: threading.Event) -> None:
+    """First SIGINT/SIGTERM: finish cleanly (final pose graph, outputs); second: exit now."""
+
+    def handler(signum: int, _frame: object) -> None:
+        if stop.is_set():
+            logger.warning("second %s: exiting without finalising", signal.Signals(signum).name)
+            raise SystemExit(130)
+        logger.info("%s: finalising (send it again to exit at once)",
+                    signal.Signals(signum).name)
+        stop.set()
+
+    signal.signal(signal.SIGINT, handler)
+    signal.signal(signal.SIGTERM, handler)
+
+
+def main() -> None:
+    app()
+
+
+if __name__ == "__main__":
+    main()

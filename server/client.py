@@ -1,0 +1,145 @@
+"""Talking to a running server: `cpslam status` and `cpslam finalise`.
+
+Both open a short-lived Zenoh client session to the server's endpoint, like an agent, but
+declare no liveliness token: they are not agents.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from typing import Annotated
+
+import typer
+
+from cpslam.common.config.cli import ConnectOpt, SessionOpt
+
+logger = logging.getLogger(__name__)
+
+TimeoutOpt = Annotated[
+    float, typer.Option("--timeout", min=0.1, help="Seconds to wait for the server.")
+]
+
+
+def status(
+    connect: ConnectOpt = None,
+    session: SessionOpt = None,
+    as_json: Annotated[bool, typer.Option("--json", help="Print the raw summary as JSON.")] = False,
+    timeout: TimeoutOpt = 10.0,
+) -> None:
+    """Print a running server's agents, groups, loops and federated rounds.
+
+    Examples:
+
+      cpslam status --connect tcp/127.0.0.1:7447
+
+      cpslam status --connect tcp/10.0.0.5:7447 --session lab --json
+    """
+    from cpslam import protocol
+    from cpslam.protocol import ProtocolError, Status, keys
+
+    cfg, bus = _client(connect, session, timeout)
+    with bus:
+        replies = bus.query(keys.server_status(cfg.transport.session), timeout_s=timeout)
+    for reply in replies:
+        if not reply.ok:
+            continue
+        try:
+            msg = protocol.decode(reply.payload, expected=Status)
+        except ProtocolError as err:
+            typer.echo(f"error: the server's status reply is malformed: {err}", err=True)
+            raise typer.Exit(1) from None
+        if as_json:
+            typer.echo(json.dumps(msg.summary, indent=2, sort_keys=True))
+        else:
+            typer.echo(format_status(msg.summary))
+        return
+    typer.echo(f"error: no cpslam-server answered on session {cfg.transport.session!r} within "
+               f"{timeout:.0f} s", err=True)
+    raise typer.Exit(1)
+
+
+def finalise(
+    connect: ConnectOpt = None,
+    session: SessionOpt = None,
+    shutdown: Annotated[bool, typer.Option(
+        "--shutdown", help="Stop without the final optimisation and outputs (state is kept).")
+    ] = False,
+    wait: Annotated[bool, typer.Option(
+        "--wait/--no-wait", help="Wait until the server has finished and left.")] = True,
+    timeout: TimeoutOpt = 600.0,
+) -> None:
+    """Ask a running server to finish: final pose graph, refinement, outputs, exit.
+
+    Examples:
+
+      cpslam finalise --connect tcp/127.0.0.1:7447
+
+      cpslam finalise --connect tcp/10.0.0.5:7447 --session lab --no-wait
+    """
+    import threading
+
+    from cpslam import protocol
+    from cpslam.protocol import Control, keys
+
+    cfg, bus = _client(connect, session, min(timeout, 30.0))
+    s = cfg.transport.session
+    present, gone = threading.Event(), threading.Event()
+    with bus:
+        watch = bus.watch_liveliness(keys.alive_server(s), on_join=lambda _k: present.set(),
+                                     on_leave=lambda _k: gone.set())
+        if not present.wait(min(timeout, 10.0)):
+            watch.close()
+            typer.echo(f"error: no cpslam-server on session {s!r}", err=True)
+            raise typer.Exit(1)
+        action = "shutdown" if shutdown else "finalise"
+        bus.publish(keys.server_control(s), protocol.encode(
+            Control(action=action, reason="cpslam finalise")))
+        typer.echo(f"asked the server to {action}")
+        t0 = time.monotonic()
+        if wait and not gone.wait(timeout):
+            watch.close()
+            typer.echo(f"error: the server was still running after {timeout:.0f} s", err=True)
+            raise typer.Exit(1)
+        watch.close()
+    if wait:
+        typer.echo(f"server finished in {time.monotonic() - t0:.1f} s")
+
+
+def format_status(summary: dict) -> str:
+    """The status summary as a few human-readable lines."""
+    lines = []
+    agents = summary.get("agents", {})
+    lines.append(f"agents ({len(agents)}):")
+    for aid, a in sorted(agents.items()):
+        lines.append(f"  {aid:<12} {'alive' if a.get('alive') else 'gone ':<6} keyframes "
+                     f"{a.get('keyframes', 0):>5}  frames {a.get('frames', 0):>6}  points "
+                     f"{a.get('points', 0):>8}  received {a.get('bytes', 0) / 1e6:8.2f} MB")
+    groups = summary.get("groups", {})
+    lines.append(f"groups ({len(groups)}):")
+    for gid, g in sorted(groups.items()):
+        lines.append(f"  {gid:<12} members {', '.join(g.get('members', []))}  round "
+                     f"{g.get('round', 0)}")
+    loops = summary.get("loops", {})
+    lines.append(f"loops: found {loops.get('found', 0)}, accepted {loops.get('accepted', 0)}, "
+                 f"rejected {loops.get('rejected', 0)}, pending {loops.get('pending', 0)}")
+    rounds = summary.get("rounds", {})
+    lines.append(f"federated rounds: closed {rounds.get('closed', 0)}, open "
+                 f"{len(rounds.get('open', []))}; merges {summary.get('merges', 0)}")
+    return "\n".join(lines)
+
+
+def _client(connect: list[str] | None, session: str | None, timeout: float):
+    """The config (defaults + flags + environment) and an open client bus, or exit 1."""
+    from cpslam.agent.daemon import open_client
+    from cpslam.common.config.cli import config_or_exit, transport_sets
+
+    cfg = config_or_exit("cpu", None, [*transport_sets(session, None, connect),
+                                       f"transport.open_timeout_s={max(timeout, 0.5)}"])
+    bus = open_client(cfg, timeout, "client")
+    if bus is None:
+        where = ", ".join(cfg.transport.connect) or "tcp/127.0.0.1:7447"
+        typer.echo(f"error: cannot reach a server at {where}", err=True)
+        raise typer.Exit(1)
+    return cfg, bus
