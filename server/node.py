@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from cpslam import protocol
+from cpslam.common.rundir import peak_rss_mb
 from cpslam.protocol import (
     Ack,
     Control,
@@ -73,6 +74,7 @@ class ServerNode:
         self._held_acks: list[Outgoing] = []
         self._last_persist = float("-inf")
         self.restored = False
+        self._t_start = time.monotonic()
         self.session = keys.check_id(cfg.transport.session, "transport.session")
         self.image_timeout_s = image_timeout_s
         self.backend = Backend.from_config(cfg, self.fetch_image, **backend_kwargs)
@@ -207,6 +209,11 @@ class ServerNode:
 
     def fetch_image(self, agent_id: str, kf_id: int) -> KeyframeImage | None:
         """A keyframe's RGB-D from the agent's image queryable; None if it cannot be had."""
+        record = self.backend.registry.agents.get(agent_id)
+        if record is not None and not record.alive:
+            # A departed agent cannot answer: do not wait out the query timeout.
+            logger.debug("image %s/%d: agent has left", agent_id, kf_id)
+            return None
         request = KeyframeImageRequest(agent_id=agent_id, kf_id=int(kf_id))
         key = keys.agent_image(self.session, agent_id, int(kf_id))
         replies = self.bus.query(key, protocol.encode(request), timeout_s=self.image_timeout_s)
@@ -232,8 +239,13 @@ class ServerNode:
                 self.persist()
                 self.publish(self.backend.step())
                 self.finalised = self.backend.finalise()
-                self.finalised.metrics["bus"] = {"dropped": dict(self.dropped),
-                                                 "traffic": self.bus.stats()}
+                traffic = self.bus.stats()
+                self.finalised.metrics["bus"] = {
+                    "dropped": dict(self.dropped), "traffic": traffic,
+                    "per_agent": traffic_per_agent(self.session, traffic,
+                                                   time.monotonic() - self._t_start)}
+                self.finalised.metrics["process"] = {
+                    "peak_rss_mb": peak_rss_mb(), "uptime_s": time.monotonic() - self._t_start}
                 export_run(self.finalised, self.run_dir)
         return self.finalised
 
@@ -292,3 +304,30 @@ class ServerNode:
             if kind == "leave":
                 with self._lock:
                     self.backend.agent_left(agent)
+
+
+def traffic_per_agent(session: str, traffic: dict, seconds: float) -> dict[str, dict]:
+    """Bytes per agent and key expression (agent -> server and server -> agent), with rates
+    over `seconds` (the server's uptime)."""
+    out: dict[str, dict] = {}
+    prefix = f"cpslam/{session}/"
+    for direction, table in (("from_agent", traffic.get("received", {})),
+                             ("to_agent", traffic.get("sent", {}))):
+        for key, row in table.items():
+            parts = key[len(prefix):].split("/") if key.startswith(prefix) else []
+            if parts[:1] == ["agent"] and len(parts) >= 3:
+                agent, topic = parts[1], "/".join(parts[2:3])
+            elif parts[:2] == ["server", "agent"] and len(parts) >= 4:
+                agent, topic = parts[2], parts[3]
+            else:
+                continue
+            entry = out.setdefault(agent, {"from_agent": {}, "to_agent": {}})
+            cell = entry[direction].setdefault(topic, {"messages": 0, "bytes": 0})
+            cell["messages"] += int(row.get("messages", 0))
+            cell["bytes"] += int(row.get("bytes", 0))
+    for entry in out.values():
+        for direction in ("from_agent", "to_agent"):
+            total = sum(c["bytes"] for c in entry[direction].values())
+            entry[f"{direction}_bytes"] = total
+            entry[f"{direction}_bytes_per_s"] = total / max(seconds, 1e-9)
+    return out

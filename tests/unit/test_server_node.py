@@ -1,0 +1,115 @@
+"""`ServerNode` over the in-memory bus: persistence before acks, restore, bad input, traffic."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from cpslam import protocol
+from cpslam.common.bus import InMemoryBus, InMemoryNetwork
+from cpslam.common.bus.subscription import Sample, Subscription
+from cpslam.common.config import load_config
+from cpslam.protocol import Ack, KeyframeMsg, keys
+from cpslam.server.node import ServerNode, traffic_per_agent
+
+SESSION = "default"
+
+
+def _keyframe(agent: str, seq: int, kf: int) -> KeyframeMsg:
+    d = np.random.default_rng(kf).standard_normal(64).astype(np.float32)
+    return KeyframeMsg(agent_id=agent, seq=seq, kf_id=kf, frame_index=kf * 5, stamp=kf / 6.0,
+                       world_epoch=0, T_world_cam=np.eye(4), T_prev_kf_kf=np.eye(4),
+                       descriptor=d / np.linalg.norm(d), n_points=0)
+
+
+def _acks(sub: Subscription, timeout: float = 1.0) -> list[int]:
+    out, deadline = [], time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        sample = sub.get(timeout=0.05)
+        if sample is not None:
+            out.append(int(protocol.decode(sample.payload, expected=Ack).seq))
+    return out
+
+
+def _setup(tmp_path: Path, persist_every_s: float):
+    cfg = load_config("tiny")
+    network = InMemoryNetwork()
+    server_bus, agent_bus = InMemoryBus(network), InMemoryBus(network)
+    node = ServerNode(cfg, server_bus, tmp_path, state_path=tmp_path / "state.pt",
+                      persist_every_s=persist_every_s).start()
+    acks = agent_bus.subscribe(keys.server_agent_ack(SESSION, "a"), queue_size=64)
+    return node, agent_bus, acks
+
+
+def test_acks_wait_for_the_state_on_disk_and_a_restart_restores_it(tmp_path: Path) -> None:
+    node, agent_bus, acks = _setup(tmp_path, persist_every_s=3600.0)
+    node._last_persist = time.monotonic()  # the next write is an hour away
+    agent_bus.publish(keys.agent_keyframe(SESSION, "a"), protocol.encode(_keyframe("a", 0, 0)))
+    time.sleep(0.2)
+    node.poll()
+    assert _acks(acks, 0.3) == [], "acknowledged before the state was persisted"
+    assert not (tmp_path / "state.pt").exists()
+    node.persist()
+    assert (tmp_path / "state.pt").is_file()
+    assert _acks(acks) == [0]
+    node.close()
+
+    restarted, agent_bus2, acks2 = _setup(tmp_path, persist_every_s=0.0)
+    assert restarted.restored
+    assert restarted.backend.status()["agents"]["a"]["keyframes"] == 1
+    # A resend of what the first server accepted is acknowledged again, not duplicated.
+    agent_bus2.publish(keys.agent_keyframe(SESSION, "a"), protocol.encode(_keyframe("a", 0, 0)))
+    time.sleep(0.2)
+    restarted.poll()
+    assert _acks(acks2) == [0]
+    assert restarted.backend.status()["agents"]["a"]["keyframes"] == 1
+
+
+def test_bad_payloads_are_dropped_and_counted(tmp_path: Path) -> None:
+    node, agent_bus, _ = _setup(tmp_path, persist_every_s=0.0)
+    key = keys.agent_keyframe(SESSION, "a")
+    agent_bus.publish(key, b"\x00garbage")
+    # agent_id in the message that disagrees with the key
+    agent_bus.publish(key, protocol.encode(_keyframe("b", 0, 0)))
+    time.sleep(0.2)
+    assert node.poll() == 0
+    assert node.dropped[key] == 2
+
+
+def test_images_are_not_requested_from_an_agent_that_left(tmp_path: Path) -> None:
+    node, agent_bus, _ = _setup(tmp_path, persist_every_s=0.0)
+    agent_bus.publish(keys.agent_keyframe(SESSION, "a"), protocol.encode(_keyframe("a", 0, 0)))
+    time.sleep(0.2)
+    node.poll()
+    node.backend.agent_left("a")
+    node.image_timeout_s = 30.0
+    t0 = time.monotonic()
+    assert node.fetch_image("a", 0) is None
+    assert time.monotonic() - t0 < 1.0
+
+
+def test_traffic_per_agent_groups_keys_and_rates() -> None:
+    traffic = {
+        "received": {"cpslam/s/agent/a/keyframe": {"messages": 2, "bytes": 100},
+                     "cpslam/s/agent/a/submap": {"messages": 1, "bytes": 900},
+                     "cpslam/s/agent/b/frames": {"messages": 1, "bytes": 50}},
+        "sent": {"cpslam/s/server/agent/a/ack": {"messages": 3, "bytes": 30},
+                 "cpslam/s/agent/a/image/4": {"messages": 1, "bytes": 10},
+                 "cpslam/s/server/group/g/decoder": {"messages": 1, "bytes": 999}},
+    }
+    out = traffic_per_agent("s", traffic, seconds=10.0)
+    assert out["a"]["from_agent_bytes"] == 1000 and out["a"]["from_agent_bytes_per_s"] == 100.0
+    # Image queries go to the agent too; group decoders belong to no single agent.
+    assert out["a"]["to_agent"] == {"ack": {"messages": 3, "bytes": 30},
+                                    "image": {"messages": 1, "bytes": 10}}
+    assert out["b"]["from_agent"] == {"frames": {"messages": 1, "bytes": 50}}
+
+
+def test_subscription_wait_does_not_consume() -> None:
+    sub = Subscription("k", queue_size=4)
+    assert sub.wait(0.05) is False
+    sub.deliver(Sample("k", b"x", time.time()))
+    assert sub.wait(0.05) is True and len(sub) == 1
+    assert sub.get(timeout=0).payload == b"x"
