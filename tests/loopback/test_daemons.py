@@ -1,0 +1,148 @@
+"""The daemons as separate OS processes over Zenoh TCP on 127.0.0.1 (tiny preset).
+
+- two agents merge into one group, federated rounds close, the final pose graph runs, the
+  outputs exist and the global trajectories agree with ground truth;
+- faults: an agent that joins late, an agent killed with SIGKILL (the server keeps what it
+  had delivered), a server killed and restarted on the same run folder (agents resend, nothing
+  is lost).
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+from pathlib import Path
+
+import pytest
+from daemons import (
+    Daemon,
+    agent_args,
+    finalise,
+    server_args,
+    status,
+    tum_rows,
+    wait_until,
+)
+
+pytestmark = [pytest.mark.loopback, pytest.mark.slow]
+pytest.importorskip("open3d")  # the synthetic renderer
+
+
+@pytest.fixture
+def daemons():
+    started: list[Daemon] = []
+    yield started
+    for d in started:
+        d.kill()
+
+
+@pytest.fixture(scope="module")
+def apartment(tmp_path_factory: pytest.TempPathFactory):
+    """Two agents in the synthetic apartment; they meet from about frame 170 of 300."""
+    from cpslam.common.synth import generate
+
+    return generate(tmp_path_factory.mktemp("apt") / "apt", scene="apartment", agents=2,
+                    frames=300, seed=0)
+
+
+def test_two_agents_merge_over_tcp(tmp_path: Path, endpoint: str, apartment, daemons) -> None:
+    from cpslam.common.datasets import open_sequence
+    from cpslam.common.eval import joint_ate
+    from cpslam.common.trajectory import read_tum
+
+    out, s = tmp_path / "run", "merge"
+    server = Daemon("server", server_args(endpoint, s, out), tmp_path)
+    daemons.append(server)
+    agents = [Daemon(f"agent{a}", agent_args(apartment.agent_dirs[a], str(a), endpoint, s, out,
+                                             "--frames", "0:300:3"), tmp_path)
+              for a in (0, 1)]
+    daemons.extend(agents)
+    for agent in agents:
+        assert agent.wait(600) == 0, agent.tail()
+    summary = status(endpoint, s)
+    assert summary is not None, server.tail()
+    assert sorted(summary["agents"]) == ["0", "1"]
+    finalise(endpoint, s)
+    assert server.wait(120) == 0, server.tail()
+
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert len(metrics["groups"]) == 1, metrics["groups"]
+    assert sorted(metrics["groups"][0]["members"]) == ["0", "1"]
+    assert metrics["merges"] and metrics["rounds"]["closed"] >= 1, (metrics["rounds"],
+                                                                    server.tail())
+    assert metrics["pose_graph"], "the final pose graph did not run"
+    assert metrics["bus"]["traffic"]["received"], "no traffic recorded"
+    for name in ("fused_map.ply", "pose_graph.g2o", "config.yaml", "server.log"):
+        assert (out / name).is_file(), name
+    pairs = []
+    for a in ("0", "1"):
+        agent_metrics = json.loads((out / f"agent_{a}" / "metrics.json").read_text())
+        assert agent_metrics["unacknowledged"] == 0
+        assert any(f"/agent/{a}/keyframe" in k for k in agent_metrics["bus"]["sent"])
+        est = read_tum(out / "trajectories" / f"agent_{a}_global.tum")
+        assert len(est[0]) == 100
+        seq = open_sequence(apartment.agent_dirs[int(a)])
+        pairs.append(((seq.timestamps, seq.gt_poses()), est))
+    # The same bound as the in-process run (tests/integration/test_run.py): tiny is coarse.
+    assert joint_ate(pairs, align="se3").overall.rmse < 0.8
+
+
+def test_late_joiner_and_killed_agent(tmp_path: Path, endpoint: str, apartment,
+                                      daemons) -> None:
+    out, s = tmp_path / "run", "faults"
+    server = Daemon("server", server_args(endpoint, s, out), tmp_path)
+    victim = Daemon("agent0", agent_args(apartment.agent_dirs[0], "0", endpoint, s, out,
+                                         "--frames", "0:120"), tmp_path)
+    daemons.extend([server, victim])
+
+    def frames_of(agent: str) -> int:
+        summary = status(endpoint, s) or {}
+        return summary.get("agents", {}).get(agent, {}).get("frames", 0)
+
+    wait_until("agent 0 to deliver frames", lambda: frames_of("0") >= 20, 300, server, victim)
+    late = Daemon("agent1", agent_args(apartment.agent_dirs[1], "1", endpoint, s, out,
+                                       "--frames", "0:60"), tmp_path)
+    daemons.append(late)
+    wait_until("the late agent to deliver frames", lambda: frames_of("1") >= 10, 300, server,
+               late)
+    victim.signal(signal.SIGKILL)
+    victim.proc.wait(10)
+    delivered = frames_of("0")
+    wait_until("the server to see agent 0 leave",
+               lambda: not (status(endpoint, s) or {}).get("agents", {}).get("0", {}).get(
+                   "alive", True), 30, server)
+    assert late.wait(600) == 0, late.tail()
+    finalise(endpoint, s)
+    assert server.wait(120) == 0, server.tail()
+    assert "agent 0 left" in server.text()
+    assert tum_rows(out / "trajectories" / "agent_0_global.tum") >= delivered >= 20
+    assert tum_rows(out / "trajectories" / "agent_1_global.tum") == 60
+
+
+def test_server_restart_loses_nothing(tmp_path: Path, endpoint: str, apartment,
+                                      daemons) -> None:
+    out, s = tmp_path / "run", "restart"
+    first = Daemon("server1", server_args(endpoint, s, out), tmp_path)
+    agent = Daemon("agent0", agent_args(apartment.agent_dirs[0], "0", endpoint, s, out,
+                                        "--frames", "0:90"), tmp_path)
+    daemons.extend([first, agent])
+
+    def keyframes() -> int:
+        summary = status(endpoint, s) or {}
+        return summary.get("agents", {}).get("0", {}).get("keyframes", 0)
+
+    wait_until("keyframes to reach the first server", lambda: keyframes() >= 4, 300, first,
+               agent)
+    first.signal(signal.SIGKILL)
+    first.proc.wait(10)
+    assert (out / "server_state.pt").is_file()
+    second = Daemon("server2", server_args(endpoint, s, out), tmp_path)
+    daemons.append(second)
+    assert agent.wait(600) == 0, agent.tail() + "\n" + second.tail()
+    finalise(endpoint, s)
+    assert second.wait(120) == 0, second.tail()
+    assert "restored server state" in second.text()
+    assert "server is back; resent" in agent.text()
+    assert tum_rows(out / "trajectories" / "agent_0_global.tum") == 90
+    agent_metrics = json.loads((out / "agent_0" / "metrics.json").read_text())
+    assert agent_metrics["unacknowledged"] == 0 and agent_metrics["server_rejoins"] >= 1
