@@ -162,10 +162,13 @@ def _networked(cfg, sequence, agent_id: str, run_dir: Path, device: str, wait_ti
                     signal.Signals(signum).name)
         stop.set()
 
-    signal.signal(signal.SIGINT, handler)
-    signal.signal(signal.SIGTERM, handler)
-    return run_networked(cfg, sequence, agent_id, run_dir, device, wait_timeout, ack_timeout,
-                         show_progress, stop)
+    previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        return run_networked(cfg, sequence, agent_id, run_dir, device, wait_timeout,
+                             ack_timeout, show_progress, stop)
+    finally:
+        for sig, old in previous.items():
+            signal.signal(sig, old)
 
 
 def main() -> None:

@@ -14,6 +14,7 @@ that needs lock-step determinism (``cpslam run``) calls `poll` itself instead.
 
 from __future__ import annotations
 
+import copy
 import logging
 import os
 import threading
@@ -75,6 +76,9 @@ class ServerNode:
         self._last_persist = float("-inf")
         self.restored = False
         self._t_start = time.monotonic()
+        self._status: dict = {}
+        self._status_at = time.monotonic()
+        self._present: dict[str, bool] = {}  # agent -> alive, written by liveliness callbacks
         self.session = keys.check_id(cfg.transport.session, "transport.session")
         self.image_timeout_s = image_timeout_s
         self.backend = Backend.from_config(cfg, self.fetch_image, **backend_kwargs)
@@ -105,6 +109,7 @@ class ServerNode:
                                       on_leave=self._left),
             self.bus.declare_liveliness(keys.alive_server(s)),
         ]
+        self._snapshot()
         logger.info("server node on session %s", s)
         return self
 
@@ -172,6 +177,7 @@ class ServerNode:
                 logger.exception("back-end step failed (%d so far)", self.step_errors)
             if self._held_acks and time.monotonic() - self._last_persist >= self.persist_every_s:
                 self.persist()
+            self._snapshot()
         return len(batch)
 
     def persist(self) -> None:
@@ -210,7 +216,9 @@ class ServerNode:
     def fetch_image(self, agent_id: str, kf_id: int) -> KeyframeImage | None:
         """A keyframe's RGB-D from the agent's image queryable; None if it cannot be had."""
         record = self.backend.registry.agents.get(agent_id)
-        if record is not None and not record.alive:
+        with self._events_lock:
+            gone = self._present.get(agent_id) is False
+        if gone or (record is not None and not record.alive):
             # A departed agent cannot answer: do not wait out the query timeout.
             logger.debug("image %s/%d: agent has left", agent_id, kf_id)
             return None
@@ -278,18 +286,40 @@ class ServerNode:
         logger.warning("dropped message on %s (%d so far): %s", key, self.dropped[key], reason)
 
     def _serve_status(self, key: str, payload: bytes | None) -> bytes:
-        with self._lock:
-            summary = self.backend.status()
+        # Never wait for a long back-end step: answer from the snapshot of the last poll,
+        # with presence as the liveliness callbacks saw it a moment ago.
+        with self._events_lock:
+            summary = copy.deepcopy(self._status)
+            present = dict(self._present)
+        for agent, alive in present.items():
+            if agent in summary.get("agents", {}):
+                summary["agents"][agent]["alive"] = alive
         summary["bus_dropped"] = dict(self.dropped)
+        summary["stale_s"] = round(time.monotonic() - self._status_at, 3)
         return protocol.encode(Status(stamp=time.time(), summary=summary))
 
+    def _snapshot(self) -> None:
+        status = self.backend.status()
+        with self._events_lock:
+            self._status, self._status_at = status, time.monotonic()
+
     def _joined(self, key: str) -> None:
+        self._presence(key, True)
         with self._events_lock:
             self._events.append(("join", key))
 
     def _left(self, key: str) -> None:
+        self._presence(key, False)
         with self._events_lock:
             self._events.append(("leave", key))
+
+    def _presence(self, key: str, alive: bool) -> None:
+        try:
+            agent = keys.parse_alive_agent(self.session, key)
+        except ProtocolError:
+            return  # reported when the event is handled
+        with self._events_lock:
+            self._present[agent] = alive
 
     def _liveliness(self) -> None:
         with self._events_lock:

@@ -84,8 +84,14 @@ def test_bad_inputs_exit_2_with_a_message(room: Path, tmp_path: Path) -> None:
     assert result.exit_code == 2 and "nowhere" in result.output
     result = _agent("--seq", str(room), "--standalone", "--set", "tracking.bogus=1")
     assert result.exit_code == 2 and "tracking.bogus" in result.output
-    result = _agent("--seq", str(room))
+    result = _agent("--seq", str(room), "--agent-id", "bad/id", "--standalone")
+    assert result.exit_code == 2 and "--agent-id" in result.output
+    result = _agent("--seq", str(room), "--standalone", "--connect", "tcp/127.0.0.1:9")
     assert result.exit_code == 2 and "--standalone" in result.output
+    # Networked with nobody listening: a clear message and exit 3 once --wait-timeout passes.
+    result = _agent("--seq", str(room), "--connect", f"tcp/127.0.0.1:{_free_port()}",
+                    "--wait-timeout", "1", "--no-progress", "--out", str(tmp_path / "n"))
+    assert result.exit_code == 3, result.output
 
 
 def test_ctrl_c_saves_what_exists(room: Path, tmp_path: Path) -> None:
@@ -113,3 +119,11 @@ def test_ctrl_c_saves_what_exists(room: Path, tmp_path: Path) -> None:
     stamps, poses = read_tum(agent_dir / "trajectory.tum")
     assert len(stamps) == metrics["frames"] > 0
     assert np.isfinite(poses).all()
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
