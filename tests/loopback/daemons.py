@@ -77,6 +77,12 @@ def status(endpoint: str, session: str, timeout: float = 10.0) -> dict | None:
     return json.loads(done.stdout)
 
 
+def agent_field(endpoint: str, session: str, agent: str, name: str, default):
+    """One field of one agent in the server's status (`default` when there is no answer)."""
+    summary = status(endpoint, session) or {}
+    return summary.get("agents", {}).get(agent, {}).get(name, default)
+
+
 def finalise(endpoint: str, session: str, timeout: float = 180.0) -> None:
     done = subprocess.run([sys.executable, "-m", "cpslam", "finalise", "--connect", endpoint,
                            "--session", session, "--timeout", str(timeout)],

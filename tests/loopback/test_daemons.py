@@ -17,6 +17,7 @@ import pytest
 from daemons import (
     Daemon,
     agent_args,
+    agent_field,
     finalise,
     server_args,
     status,
@@ -96,8 +97,7 @@ def test_late_joiner_and_killed_agent(tmp_path: Path, endpoint: str, apartment,
     daemons.extend([server, victim])
 
     def frames_of(agent: str) -> int:
-        summary = status(endpoint, s) or {}
-        return summary.get("agents", {}).get(agent, {}).get("frames", 0)
+        return agent_field(endpoint, s, agent, "frames", 0)
 
     wait_until("agent 0 to deliver frames", lambda: frames_of("0") >= 20, 300, server, victim)
     late = Daemon("agent1", agent_args(apartment.agent_dirs[1], "1", endpoint, s, out,
@@ -109,8 +109,7 @@ def test_late_joiner_and_killed_agent(tmp_path: Path, endpoint: str, apartment,
     victim.proc.wait(10)
     delivered = frames_of("0")
     wait_until("the server to see agent 0 leave",
-               lambda: not (status(endpoint, s) or {}).get("agents", {}).get("0", {}).get(
-                   "alive", True), 30, server)
+               lambda: not agent_field(endpoint, s, "0", "alive", True), 30, server)
     assert late.wait(600) == 0, late.tail()
     finalise(endpoint, s)
     assert server.wait(120) == 0, server.tail()
@@ -127,12 +126,8 @@ def test_server_restart_loses_nothing(tmp_path: Path, endpoint: str, apartment,
                                         "--frames", "0:90"), tmp_path)
     daemons.extend([first, agent])
 
-    def keyframes() -> int:
-        summary = status(endpoint, s) or {}
-        return summary.get("agents", {}).get("0", {}).get("keyframes", 0)
-
-    wait_until("keyframes to reach the first server", lambda: keyframes() >= 4, 300, first,
-               agent)
+    wait_until("keyframes to reach the first server",
+               lambda: agent_field(endpoint, s, "0", "keyframes", 0) >= 4, 300, first, agent)
     first.signal(signal.SIGKILL)
     first.proc.wait(10)
     assert (out / "server_state.pt").is_file()
