@@ -6,6 +6,7 @@ PYTHON ?= python3
 VENV ?= .venv
 TORCH_SPEC ?= torch==2.13.0
 PYTEST_ARGS ?=
+DEMO_ARGS ?=
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.cpslam-installed
 
@@ -48,9 +49,7 @@ format: $(STAMP)
 	$(BIN)/ruff format .
 
 demo: $(STAMP)
-	@echo "make demo arrives with the daemons (cpslam-server, cpslam-agent); meanwhile try:"
-	@echo "  $(BIN)/cpslam dataset synth --scene apartment --agents 2 --out runs/data/apartment"
-	@false
+	$(BIN)/cpslam demo $(DEMO_ARGS)
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache build *.egg-info

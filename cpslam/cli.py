@@ -18,6 +18,7 @@ from cpslam.common.eval.recon_cli import recon as eval_recon
 from cpslam.common.logs import setup_logging
 from cpslam.common.render import render
 from cpslam.common.synth.cli import synth as dataset_synth
+from cpslam.demo import demo
 from cpslam.run import run as run_command
 from cpslam.server.client import finalise as server_finalise
 from cpslam.server.client import status as server_status
@@ -42,6 +43,7 @@ eval_app.command("recon")(eval_recon)
 config_app.command("show")(config_show)
 app.command("render")(render)
 app.command("run")(run_command)
+app.command("demo")(demo)
 app.command("status")(server_status)
 app.command("finalise")(server_finalise)
 config_app.command("presets")(config_presets)

@@ -1,0 +1,422 @@
+"""`cpslam demo`: a server and N agents as separate processes over loopback TCP, then a report.
+
+1. The synthetic scene (`cpslam.common.synth.generate`, N agents walking a 300-frame path) is
+   generated once and cached under ``DATA/<scene>-<N>x<walk>-<W>x<H>-s<seed>/`` (``--data-dir``,
+   default ``runs/data``); a folder with its ``scene.json`` is complete and reused.
+2. ``python -m cpslam.server.cli`` listens on ``tcp/127.0.0.1:PORT`` (a free port unless
+   ``--port``); once its liveliness token is seen, one ``python -m cpslam.agent.cli`` per agent
+   streams ``--frames`` evenly spaced frames of its walk. Each child runs in its own process
+   group with stdout and stderr in ``RUN/logs/<name>.log``.
+3. Progress: the server's status query (frames, keyframes, groups, loops) once a second.
+4. When every agent exited 0, a ``Control(finalise)`` message asks the server for the final
+   pose graph, refinement and outputs; it exits 0.
+5. `cpslam.report`: table, plots, mesh; the list of outputs.
+
+A child that dies (an agent with a non-zero code, the server at all before it was asked to
+finish) stops the others and is named with its log file. Ctrl-C sends SIGINT once to every
+child (agents save what they have, the server finalises) and waits for them; a second Ctrl-C
+kills them.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import IO, Annotated, Any
+
+import typer
+
+from cpslam.common.config.cli import DeviceOpt, PresetOpt, SetOpt
+
+__all__ = ["ChildFailed", "Supervisor", "demo", "frame_slice", "free_port", "scene_data"]
+
+logger = logging.getLogger(__name__)
+
+SESSION = "demo"
+WALK_FRAMES = 300
+MARKER = "demo.json"
+KEYFRAME_EVERY = 10
+"""Keyframe interval of the demo (unless --set or the preset asks for fewer frames): the
+demo's frames are every 3rd of the walk, and the presets' 50 would leave 2 keyframes per
+agent, too few for the agents to find each other."""
+
+
+class ChildFailed(RuntimeError):
+    """A supervised process exited when it should not have."""
+
+    def __init__(self, name: str, code: int | None, log: Path, why: str = "") -> None:
+        self.name, self.code, self.log = name, code, log
+        what = why or f"exited with code {code}"
+        super().__init__(f"{name} {what}; its log: {log}\n{_tail(log)}")
+
+
+@dataclass
+class Child:
+    name: str
+    proc: subprocess.Popen
+    log: Path
+    may_exit: bool
+    """True: exit 0 is the normal end (agents); False: any exit is a failure (server)."""
+    stream: IO[bytes]
+
+
+class Supervisor:
+    """Starts processes with their output in ``log_dir/<name>.log`` and watches them."""
+
+    def __init__(self, log_dir: Path, env: dict[str, str] | None = None) -> None:
+        self.log_dir = Path(log_dir)
+        self.env = env
+        self.children: dict[str, Child] = {}
+
+    def __enter__(self) -> Supervisor:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def start(self, name: str, argv: list[str], may_exit: bool = True) -> Child:
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        log = self.log_dir / f"{name}.log"
+        stream = log.open("wb")
+        # Own process group: a Ctrl-C in the terminal reaches only us, and we forward it once
+        # (the server treats a second SIGINT as "exit without finalising").
+        proc = subprocess.Popen(argv, stdout=stream, stderr=subprocess.STDOUT, env=self.env,
+                                stdin=subprocess.DEVNULL, start_new_session=True)
+        child = Child(name, proc, log, may_exit, stream)
+        self.children[name] = child
+        logger.info("started %s (pid %d): %s", name, proc.pid, " ".join(argv))
+        return child
+
+    def running(self, name: str) -> bool:
+        return self.children[name].proc.poll() is None
+
+    def check(self) -> None:
+        """Raise `ChildFailed` for the first child that exited when it should not have."""
+        for child in self.children.values():
+            code = child.proc.poll()
+            if code is not None and (code != 0 or not child.may_exit):
+                raise ChildFailed(child.name, code, child.log)
+
+    def close(self, grace_s: float = 60.0) -> None:
+        """SIGINT to every child still running, then SIGKILL after `grace_s`."""
+        live = [c for c in self.children.values() if c.proc.poll() is None]
+        for child in live:
+            child.proc.send_signal(signal.SIGINT)
+        deadline = time.monotonic() + grace_s
+        try:
+            for child in live:
+                try:
+                    child.proc.wait(max(deadline - time.monotonic(), 0.01))
+                except subprocess.TimeoutExpired:
+                    logger.warning("%s did not stop within %.0f s; killing it", child.name,
+                                   grace_s)
+        except KeyboardInterrupt:
+            logger.warning("second interrupt: killing the children")
+        finally:
+            for child in self.children.values():
+                if child.proc.poll() is None:
+                    child.proc.kill()
+                    child.proc.wait()
+                child.stream.close()
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    """A TCP port on `host` that was free a moment ago."""
+    with socket.socket() as sock:
+        sock.bind((host, 0))
+        return int(sock.getsockname()[1])
+
+
+def frame_slice(walk: int, frames: int) -> str:
+    """``START:STOP:STEP`` picking `frames` evenly spaced frames of a `walk`-frame sequence."""
+    step = max(1, walk // max(frames, 1))
+    return f"0:{min(step * frames, walk)}:{step}"
+
+
+def scene_data(data_dir: Path, scene: str, agents: int, walk: int, width: int, height: int,
+               seed: int, show_progress: bool = True) -> list[Path]:
+    """The agents' sequence folders of a synthetic scene, generated on first use."""
+    from cpslam.common.synth import generate
+
+    out = Path(data_dir) / f"{scene}-{agents}x{walk}-{width}x{height}-s{seed}"
+    dirs = [out / f"agent_{i}" for i in range(agents)]
+    if (out / "scene.json").is_file() and all(d.is_dir() for d in dirs):
+        logger.info("scene cached in %s", out)
+        return dirs
+    return generate(out, scene=scene, agents=agents, frames=walk, width=width, height=height,
+                    seed=seed, overwrite=True, show_progress=show_progress).agent_dirs
+
+
+def prepare_run_dir(run: Path) -> None:
+    """An empty run folder; an earlier demo's folder (it holds demo.json) is replaced."""
+    if run.exists():
+        if (run / MARKER).is_file():
+            shutil.rmtree(run)
+        elif run.is_dir() and not any(run.iterdir()):
+            return
+        else:
+            raise FileExistsError(f"{run}: exists and is not an earlier demo's folder; choose "
+                                  "another --out or remove it")
+    run.mkdir(parents=True)
+
+
+def demo(
+    agents: Annotated[int, typer.Option("--agents", min=1, max=8, help="Number of agents.")] = 2,
+    preset: PresetOpt = "cpu",
+    out: Annotated[Path, typer.Option("--out", help="Run folder (an earlier demo's is "
+                                      "replaced).")] = Path("runs/demo"),
+    frames: Annotated[int, typer.Option("--frames", min=2, help="Frames per agent, evenly "
+                                        "spaced over its 300-frame walk.")] = 100,
+    scene: Annotated[str, typer.Option("--scene", help="apartment or room.")] = "apartment",
+    width: Annotated[int, typer.Option("--width", min=8, help="Image width of the scene.")] = 320,
+    height: Annotated[int, typer.Option("--height", min=8, help="Image height.")] = 240,
+    seed: Annotated[int, typer.Option("--seed", help="Scene seed.")] = 0,
+    data_dir: Annotated[Path, typer.Option("--data-dir", help="Cache of generated scenes.")
+                        ] = Path("runs/data"),
+    port: Annotated[int, typer.Option("--port", min=0, max=65535,
+                                      help="Server port on 127.0.0.1 (0: a free one).")] = 0,
+    sets: SetOpt = None,
+    device: DeviceOpt = None,
+    mesh: Annotated[bool, typer.Option("--mesh/--no-mesh", help="TSDF mesh of the fused map."
+                                       )] = True,
+    timeout: Annotated[float, typer.Option("--timeout", min=0, help="Give up after this many "
+                                           "seconds (0: never).")] = 0.0,
+    no_progress: Annotated[bool, typer.Option("--no-progress", help="No progress bars.")
+                           ] = False,
+) -> None:
+    """Server and agents as separate processes on this machine, on a synthetic apartment.
+
+    Generates (once, cached in --data-dir) the scene, starts cpslam-server on a free
+    127.0.0.1 port and one cpslam-agent per agent, shows their progress, finalises the
+    server and prints a table (per-agent and global ATE, loops, merge time, map size, bytes
+    sent per agent). Outputs in --out: trajectories/, fused_map.ply, mesh.ply,
+    pose_graph.g2o, metrics.json, report.json, plots/*.png, logs/.
+
+    Examples:
+
+      cpslam demo
+
+      cpslam demo --agents 3 --frames 60 --out runs/demo3
+
+      cpslam demo --preset tiny --frames 30 --width 160 --height 120 --no-mesh
+    """
+    if scene not in ("apartment", "room"):
+        typer.echo(f"error: --scene must be apartment or room, got {scene!r}", err=True)
+        raise typer.Exit(2)
+    from cpslam.common.config.cli import config_or_exit
+
+    sets = list(sets or [])
+    cfg = config_or_exit(preset, None, sets, device, None)  # checks --set before any work
+    if cfg.keyframes.every > KEYFRAME_EVERY and not any(
+            s.replace(" ", "").startswith("keyframes.every=") for s in sets):
+        sets.insert(0, f"keyframes.every={KEYFRAME_EVERY}")
+    if cfg.run.num_threads:  # the report renders with the preset's threads, like the agents
+        import torch
+
+        torch.set_num_threads(cfg.run.num_threads)
+    t0 = time.monotonic()
+    try:
+        prepare_run_dir(out)
+    except FileExistsError as err:
+        typer.echo(f"error: {err}", err=True)
+        raise typer.Exit(2) from None
+    walk = max(WALK_FRAMES, frames)
+    seqs = scene_data(data_dir, scene, agents, walk, width, height, seed, not no_progress)
+    port = port or free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    common = ["--session", SESSION, "--preset", preset, "--out", str(out),
+              *(x for s in sets for x in ("--set", s)),
+              *(["--device", device] if device else [])]
+    info: dict[str, Any] = {"agents": agents, "preset": preset, "sets": sets, "frames": frames,
+                            "frame_slice": frame_slice(walk, frames), "scene": scene,
+                            "endpoint": endpoint, "session": SESSION,
+                            "sequences": {str(i): str(p) for i, p in enumerate(seqs)},
+                            "data_s": time.monotonic() - t0}
+    _write_marker(out, info)
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    env.setdefault("OMP_NUM_THREADS", "1")
+    deadline = t0 + timeout if timeout else None
+    code = 0
+    # SIGTERM (a CI cancelling us, `kill`) stops the children like Ctrl-C does.
+    try:
+        previous = signal.signal(signal.SIGTERM, _interrupt)
+    except ValueError:  # not the main thread: leave SIGTERM alone
+        previous = None
+    with Supervisor(out / "logs", env) as sup:
+        try:
+            _run(sup, endpoint, common, seqs, info, deadline, not no_progress)
+        except ChildFailed as err:
+            typer.echo(f"error: {err}", err=True)
+            code = 1
+        except TimeoutError as err:
+            typer.echo(f"error: {err}; logs in {out / 'logs'}", err=True)
+            code = 1
+        except KeyboardInterrupt:
+            typer.echo("interrupted: stopping the agents and the server (the server writes "
+                       "what it has; Ctrl-C again to kill)", err=True)
+            code = 130
+    if previous is not None:
+        signal.signal(signal.SIGTERM, previous)
+    info["wall_s"] = time.monotonic() - t0
+    _write_marker(out, info)
+    if code:
+        raise typer.Exit(code)
+    _report(out, info, mesh, not no_progress)
+
+
+def _run(sup: Supervisor, endpoint: str, common: list[str], seqs: list[Path],
+         info: dict, deadline: float | None, show: bool) -> None:
+    """Start the server and the agents, follow them, finalise the server."""
+    from cpslam.agent.daemon import ServerPresence
+    from cpslam.common.bus import BusError, bus_from_config
+    from cpslam.common.config import load_config
+    from cpslam.protocol import Control, encode, keys
+
+    py = [sys.executable, "-m"]
+    t = time.monotonic()
+    sup.start("server", [*py, "cpslam.server.cli", "--listen", endpoint, *common],
+              may_exit=False)
+    client_cfg = load_config(overrides=[f"transport.connect={endpoint}",
+                                        f"transport.session={SESSION}",
+                                        "transport.open_timeout_s=1"], env={})
+
+    def connect() -> Any:
+        try:
+            return bus_from_config(client_cfg.transport, "agent")
+        except BusError:
+            return None
+
+    bus = _wait(connect, "the server to listen", sup, deadline)
+    with bus:
+        presence = ServerPresence(bus, SESSION)
+        _wait(lambda: presence.wait(1.0) or None, "the server to come up", sup, deadline)
+        for i, seq in enumerate(seqs):
+            sup.start(f"agent_{i}", [*py, "cpslam.agent.cli", "--seq", str(seq), "--agent-id",
+                                     str(i), "--connect", endpoint, "--no-progress",
+                                     "--frames", info["frame_slice"], *common])
+        names = [f"agent_{i}" for i in range(len(seqs))]
+        _follow(sup, bus, names, info["frames"], deadline, show)
+        info["agents_s"] = time.monotonic() - t
+        t = time.monotonic()
+        sup.children["server"].may_exit = True  # from now on it may finish
+        bus.publish(keys.server_control(SESSION), encode(Control(action="finalise",
+                                                                 reason="demo done")))
+        _wait(lambda: None if sup.running("server") else True, "the server to finalise", sup,
+              deadline, label="server: finalising", show=show)
+        presence.close()
+    sup.check()
+    info["finalise_s"] = time.monotonic() - t
+
+
+def _wait(poll: Any, what: str, sup: Supervisor, deadline: float | None,
+          label: str | None = None, show: bool = False) -> Any:
+    """Call `poll` until it returns something; fail if a child dies or time runs out."""
+    from cpslam.common.logs import make_progress
+
+    with make_progress(disable=not (show and label)) as bar:
+        bar.add_task(label or what, total=None, info="")
+        while True:
+            value = poll()
+            if value is not None:
+                return value
+            sup.check()
+            if deadline is not None and time.monotonic() > deadline:
+                raise TimeoutError(f"--timeout reached while waiting for {what}")
+            time.sleep(0.5)
+
+
+def _follow(sup: Supervisor, bus: Any, names: list[str], frames: int,
+            deadline: float | None, show: bool) -> None:
+    """Progress bars from the server's status until every agent has exited."""
+    from cpslam.common.logs import make_progress
+
+    with make_progress(disable=not show) as bar:
+        tasks = {n: bar.add_task(n.replace("_", " "), total=frames, info="starting")
+                 for n in names}
+        server = bar.add_task("server", total=None, info="")
+        while True:
+            sup.check()
+            summary = _status(bus)
+            for n in names:
+                a = summary.get("agents", {}).get(n.split("_", 1)[1])
+                if not sup.running(n):
+                    bar.update(tasks[n], completed=frames, info="done")
+                elif a is not None:
+                    bar.update(tasks[n], completed=min(a.get("frames", 0), frames),
+                               info=f"keyframes {a.get('keyframes', 0)}  sent "
+                                    f"{a.get('bytes', 0) / 1e6:.1f} MB")
+            if summary:
+                loops = summary.get("loops", {})
+                bar.update(server, info=f"groups {len(summary.get('groups', {}))}  loops "
+                           f"{loops.get('accepted', 0)}/{loops.get('found', 0)}  merges "
+                           f"{summary.get('merges', 0)}  rounds "
+                           f"{summary.get('rounds', {}).get('closed', 0)}")
+            if not any(sup.running(n) for n in names):
+                return
+            if deadline is not None and time.monotonic() > deadline:
+                raise TimeoutError("--timeout reached while the agents were running")
+            time.sleep(1.0)
+
+
+def _status(bus: Any) -> dict:
+    """The server's status summary, or {} when it does not answer within a second."""
+    from cpslam.protocol import ProtocolError, Status, decode, keys
+
+    for reply in bus.query(keys.server_status(SESSION), timeout_s=1.0):
+        if reply.ok:
+            try:
+                return decode(reply.payload, expected=Status).summary
+            except ProtocolError:
+                continue
+    return {}
+
+
+def _report(out: Path, info: dict, mesh: bool, show: bool) -> None:
+    from rich.console import Console
+
+    from cpslam.report import build_report, print_report
+
+    t = time.monotonic()
+    seqs = {a: Path(p) for a, p in info["sequences"].items()}
+    report = build_report(out, seqs, mesh=mesh, show_progress=show)
+    info["report_s"] = time.monotonic() - t
+    info["wall_s"] += info["report_s"]
+    _write_marker(out, info)
+    console = Console()
+    print_report(report, console, title=f"cpslam demo: {info['agents']} agents, preset "
+                 f"{info['preset']}, {info['frames']} frames each, {info['wall_s']:.0f} s")
+    mesh_file = "mesh.ply" if "path" in report.get("mesh", {}) else "(skipped)"
+    plots = ", ".join(Path(p).name for p in report.get("plots", [])) or "(no ground truth)"
+    console.print(f"outputs in {out}/\n"
+                  "  global trajectories  trajectories/agent_<id>_global.tum (and _local)\n"
+                  f"  fused map, mesh      fused_map.ply, {mesh_file}\n"
+                  "  pose graph           pose_graph.g2o\n"
+                  "  metrics              metrics.json (server), report.json (this table), "
+                  "agent_<id>/metrics.json\n"
+                  f"  plots                plots/: {plots}\n"
+                  "  logs                 logs/server.log, logs/agent_<id>.log", soft_wrap=True)
+
+
+def _interrupt(_signum: int, _frame: object) -> None:
+    raise KeyboardInterrupt
+
+
+def _write_marker(out: Path, info: dict) -> None:
+    (out / MARKER).write_text(json.dumps(info, indent=2) + "\n")
+
+
+def _tail(path: Path, lines: int = 15) -> str:
+    try:
+        text = path.read_text(errors="replace").splitlines()
+    except OSError:
+        return ""
+    return "\n".join(f"  | {line}" for line in text[-lines:])

@@ -1,0 +1,63 @@
+"""`cpslam demo --preset tiny` end to end: real server and agent processes over loopback TCP.
+
+Small on purpose (two agents × 30 frames of a 160×120 apartment, tiny preset: about a minute
+on two cores): it checks that the pieces run together and every output is written, not
+accuracy (30 frames spread over the 300-frame walk move 10 cm per frame, too fast for tiny).
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+pytestmark = pytest.mark.slow
+pytest.importorskip("open3d")
+
+
+def test_demo_tiny_end_to_end(tmp_path: Path) -> None:
+    out = tmp_path / "demo"
+    cmd = [sys.executable, "-m", "cpslam", "demo", "--preset", "tiny", "--agents", "2",
+           "--frames", "30", "--width", "160", "--height", "120", "--out", str(out),
+           "--data-dir", str(tmp_path / "data"), "--no-progress", "--timeout", "600"]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=900,
+                          env={"COLUMNS": "120", **_env()})
+    logs = "\n".join(f"--- {p.name}\n{p.read_text()[-3000:]}"
+                     for p in sorted((out / "logs").glob("*.log")))
+    assert done.returncode == 0, done.stdout + done.stderr + logs
+
+    for name in ("trajectories/agent_0_global.tum", "trajectories/agent_1_global.tum",
+                 "fused_map.ply", "mesh.ply", "pose_graph.g2o", "metrics.json", "report.json",
+                 "plots/trajectories_global.png", "plots/trajectories_local.png",
+                 "logs/server.log", "logs/agent_0.log", "logs/agent_1.log", "demo.json"):
+        assert (out / name).is_file(), name
+    report = json.loads((out / "report.json").read_text())
+    assert sorted(report["agents"]) == ["0", "1"]
+    for row in report["agents"].values():
+        assert row["frames"] == 30
+        assert row["sent_bytes"] > 10_000 and row["points"] > 0
+        assert row["global_ate_m"] is not None
+    assert report["all"]["joint_ate_m"] is not None
+    assert report["mesh"]["triangles"] > 0
+    assert "ATE glob" in done.stdout and "outputs in" in done.stdout
+    info = json.loads((out / "demo.json").read_text())
+    assert info["frame_slice"] == "0:300:10" and info["wall_s"] > 0
+
+    # A second run reuses the cached scene, replaces the earlier demo folder, and gives up
+    # cleanly at its --timeout (every child stopped).
+    scene = next((tmp_path / "data").glob("*/scene.json"))
+    stamp = scene.stat().st_mtime_ns
+    (out / "stale.txt").write_text("from the first run")
+    again = subprocess.run([*cmd[:-2], "--timeout", "3"], capture_output=True, text=True,
+                           timeout=300, env=_env())
+    assert again.returncode == 1 and "--timeout reached" in again.stderr, again.stderr
+    assert not (out / "stale.txt").exists() and scene.stat().st_mtime_ns == stamp
+
+
+def _env() -> dict[str, str]:
+    import os
+
+    return {k: v for k, v in os.environ.items() if k != "COLUMNS"}

@@ -1,0 +1,127 @@
+"""`cpslam demo` pieces that need no daemons: supervisor, frame choice, folders, scene cache."""
+
+from __future__ import annotations
+
+import socket
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from cpslam.cli import app
+from cpslam.demo import (
+    MARKER,
+    ChildFailed,
+    Supervisor,
+    frame_slice,
+    free_port,
+    prepare_run_dir,
+    scene_data,
+)
+
+PY = sys.executable
+
+
+def _wait_exit(sup: Supervisor, name: str, timeout: float = 20.0) -> None:
+    deadline = time.monotonic() + timeout
+    while sup.running(name) and time.monotonic() < deadline:
+        time.sleep(0.05)
+
+
+def test_a_child_that_fails_is_named_with_its_log(tmp_path: Path) -> None:
+    with Supervisor(tmp_path / "logs") as sup:
+        sup.start("sleeper", [PY, "-c", "import time; time.sleep(60)"])
+        sup.start("agent_7", [PY, "-c", "print('loading frames'); raise SystemExit(1)"])
+        _wait_exit(sup, "agent_7")
+        with pytest.raises(ChildFailed) as info:
+            sup.check()
+    err = info.value
+    assert err.name == "agent_7" and err.code == 1
+    assert err.log == tmp_path / "logs" / "agent_7.log"
+    assert "agent_7 exited with code 1" in str(err) and str(err.log) in str(err)
+    assert "loading frames" in str(err)  # the tail of its log
+    # Leaving the supervisor stopped the others.
+    assert not sup.running("sleeper")
+
+
+def test_normal_exit_is_fine_but_a_server_must_not_exit(tmp_path: Path) -> None:
+    with Supervisor(tmp_path) as sup:
+        sup.start("agent_0", [PY, "-c", "pass"])
+        _wait_exit(sup, "agent_0")
+        sup.check()  # exit 0 of an agent is its normal end
+        sup.start("server", [PY, "-c", "pass"], may_exit=False)
+        _wait_exit(sup, "server")
+        with pytest.raises(ChildFailed, match="server exited with code 0"):
+            sup.check()
+
+
+def test_close_forwards_one_sigint_then_kills(tmp_path: Path) -> None:
+    graceful = ("import signal, sys, time\n"
+                "def stop(*_):\n    print('finalising', flush=True); sys.exit(0)\n"
+                "signal.signal(signal.SIGINT, stop)\nprint('ready', flush=True)\n"
+                "time.sleep(60)\n")
+    stubborn = ("import signal, time\nsignal.signal(signal.SIGINT, signal.SIG_IGN)\n"
+                "print('ready', flush=True)\ntime.sleep(60)\n")
+    sup = Supervisor(tmp_path)
+    server = sup.start("server", [PY, "-c", graceful])
+    agent = sup.start("agent_0", [PY, "-c", stubborn])
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline and not all(
+            "ready" in c.log.read_text() for c in (server, agent)):
+        time.sleep(0.05)
+    t0 = time.monotonic()
+    sup.close(grace_s=1.0)
+    assert time.monotonic() - t0 < 10
+    assert server.proc.returncode == 0 and "finalising" in server.log.read_text()
+    assert agent.proc.returncode == -9  # ignored SIGINT: killed after the grace period
+
+
+def test_frame_slice_spreads_frames_over_the_walk() -> None:
+    assert frame_slice(300, 100) == "0:300:3"
+    assert frame_slice(300, 30) == "0:300:10"
+    assert frame_slice(300, 120) == "0:240:2"
+    assert frame_slice(300, 300) == "0:300:1"
+    assert frame_slice(400, 400) == "0:400:1"
+
+
+def test_free_port_can_be_bound() -> None:
+    port = free_port()
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", port))
+
+
+def test_run_folder_replaces_only_an_earlier_demo(tmp_path: Path) -> None:
+    run = tmp_path / "demo"
+    prepare_run_dir(run)
+    (run / MARKER).write_text("{}")
+    (run / "metrics.json").write_text("{}")
+    prepare_run_dir(run)
+    assert run.is_dir() and not any(run.iterdir())
+    (run / "precious.txt").write_text("mine")
+    with pytest.raises(FileExistsError, match="not an earlier demo"):
+        prepare_run_dir(run)
+    assert (run / "precious.txt").is_file()
+
+
+def test_scene_is_generated_once_and_cached(tmp_path: Path) -> None:
+    first = scene_data(tmp_path, "room", 1, 3, 16, 12, seed=0, show_progress=False)
+    assert first == [tmp_path / "room-1x3-16x12-s0" / "agent_0"]
+    stamp = (first[0].parent / "scene.json").stat().st_mtime_ns
+    assert scene_data(tmp_path, "room", 1, 3, 16, 12, seed=0, show_progress=False) == first
+    assert (first[0].parent / "scene.json").stat().st_mtime_ns == stamp
+
+
+def test_cli_refuses_bad_arguments_before_any_work(tmp_path: Path) -> None:
+    runner = CliRunner()
+    result = runner.invoke(app, ["demo", "--scene", "castle", "--out", str(tmp_path / "x")])
+    assert result.exit_code == 2 and "apartment or room" in result.output
+    result = runner.invoke(app, ["demo", "--set", "nonsense.key=1", "--out", str(tmp_path / "x")])
+    assert result.exit_code == 2
+    (tmp_path / "busy").mkdir()
+    (tmp_path / "busy" / "notes.txt").write_text("x")
+    result = runner.invoke(app, ["demo", "--out", str(tmp_path / "busy"),
+                                 "--data-dir", str(tmp_path / "data")])
+    assert result.exit_code == 2 and "not an earlier demo" in result.output
+    assert not (tmp_path / "data").exists()

@@ -1,0 +1,126 @@
+"""The end-of-run report on a hand-made run folder: numbers, table, plots, missing mesh."""
+
+from __future__ import annotations
+
+import io
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from rich.console import Console
+
+from cpslam.common.geometry import compose
+from cpslam.common.trajectory import write_tum
+from cpslam.report import build_report, main_group, print_report
+
+
+def _circle(n: int, phase: float) -> np.ndarray:
+    poses = np.repeat(np.eye(4)[None], n, axis=0)
+    angle = phase + np.linspace(0, np.pi, n)
+    poses[:, 0, 3], poses[:, 1, 3] = 2 * np.cos(angle), 2 * np.sin(angle)
+    poses[:, 2, 3] = 1.0
+    return poses
+
+
+def _offset(x: float, yaw: float) -> np.ndarray:
+    T = np.eye(4)
+    c, s = np.cos(yaw), np.sin(yaw)
+    T[:2, :2] = [[c, -s], [s, c]]
+    T[0, 3] = x
+    return T
+
+
+@pytest.fixture
+def run(tmp_path: Path) -> tuple[Path, dict[str, Path]]:
+    """Two agents merged into group 0 at 12.5 s; agent 1's global poses are 3 cm off."""
+    run, stamps = tmp_path / "run", np.arange(50) / 10.0
+    rng = np.random.default_rng(0)
+    seqs = {}
+    T_group_world = _offset(0.7, 0.3)  # the group frame is not the ground truth's
+    for a, phase in (("0", 0.0), ("1", 2.0)):
+        gt = _circle(50, phase)
+        seqs[a] = tmp_path / f"gt_{a}.tum"
+        write_tum(seqs[a], stamps, gt)
+        glob = np.stack([compose(T_group_world, T) for T in gt])
+        if a == "1":
+            glob[:, 1, 3] += 0.03
+        glob[:, :3, 3] += rng.normal(0, 1e-3, (50, 3))
+        local = np.stack([compose(np.linalg.inv(gt[0]), T) for T in gt])
+        write_tum(run / "trajectories" / f"agent_{a}_global.tum", stamps, glob)
+        write_tum(run / "trajectories" / f"agent_{a}_local.tum", stamps, local)
+        (run / f"agent_{a}").mkdir(parents=True)
+        (run / f"agent_{a}" / "metrics.json").write_text(json.dumps({
+            "points": 1000 + int(a), "bus": {"sent": {
+                f"cpslam/demo/agent/{a}/keyframe": {"messages": 3, "bytes": 2_000_000},
+                f"cpslam/demo/agent/{a}/frames": {"messages": 5, "bytes": 500_000}}}}))
+    loops = [{"agent_a": "0", "agent_b": "0", "accepted": True},
+             {"agent_a": "0", "agent_b": "1", "accepted": True},
+             {"agent_a": "1", "agent_b": "0", "accepted": False}]
+    metrics = {
+        "groups": [{"group_id": "0", "members": ["0", "1"]}],
+        "agents": {a: {"group": "0", "merged": True, "bytes": 1} for a in seqs},
+        "loops": {"found": 5, "accepted": 2, "rejected": 1, "list": loops},
+        "merges": [{"time": 12.5, "group": "0", "members": ["0", "1"]}],
+        "refinement": [{"group": "0", "points": 1800}],
+        "bus": {"per_agent": {a: {"from_agent_bytes": 7, "to_agent_bytes": 300_000}
+                              for a in seqs}},
+    }
+    (run / "metrics.json").write_text(json.dumps(metrics))
+    return run, seqs
+
+
+def test_report_numbers(run: tuple[Path, dict[str, Path]]) -> None:
+    folder, seqs = run
+    report = build_report(folder, seqs, mesh=True)
+    a0, a1, total = report["agents"]["0"], report["agents"]["1"], report["all"]
+    assert a0["frames"] == a1["frames"] == 50
+    assert a0["local_ate_m"] < 0.01 and a1["local_ate_m"] < 0.01
+    # One alignment for both: agent 1's 3 cm offset shows in both, shared out.
+    assert 0.005 < a0["global_ate_m"] < 0.03 and 0.005 < a1["global_ate_m"] < 0.03
+    assert total["joint_ate_m"] == pytest.approx(0.015, abs=0.005)
+    assert a0["merged_at_s"] == a1["merged_at_s"] == 12.5 and a0["group"] == "0"
+    assert (a0["loops_accepted"], a0["loops_verified"]) == (2, 3)
+    assert (a1["loops_accepted"], a1["loops_verified"]) == (1, 2)
+    assert a0["points"] == 1000 and total["fused_points"] == 1800
+    assert a0["sent_bytes"] == 2_500_000 and total["sent_bytes"] == 5_000_000
+    assert total["received_bytes"] == 600_000
+    assert (total["loops_found"], total["loops_accepted"]) == (5, 2)
+    for plot in report["plots"]:
+        assert Path(plot).read_bytes()[:4] == b"\x89PNG"
+    assert "not found" in report["mesh"]["skipped"]
+    assert json.loads((folder / "report.json").read_text())["all"]["groups"] == 1
+
+    out = io.StringIO()
+    print_report(report, Console(file=out, width=100))
+    text = out.getvalue()
+    assert "ATE glob" in text and "12.5" in text and "2.50" in text and "1800" in text
+    assert "mesh skipped" in text
+
+
+def test_report_without_ground_truth_or_agent_bus(run: tuple[Path, dict[str, Path]]) -> None:
+    folder, _ = run
+    for a in ("0", "1"):
+        (folder / f"agent_{a}" / "metrics.json").unlink()
+    report = build_report(folder, None, mesh=False)
+    assert "local_ate_m" not in report["agents"]["0"] and "plots" not in report
+    assert report["agents"]["0"]["sent_bytes"] == 7  # what the server received from it
+    assert report["agents"]["0"]["points"] is None
+    assert any("no ATE" in n for n in report["notes"])
+    out = io.StringIO()
+    print_report(report, Console(file=out, width=100))
+    assert " - " in out.getvalue()
+
+
+def test_report_needs_the_server_metrics(tmp_path: Path) -> None:
+    with pytest.raises(FileNotFoundError, match="metrics.json"):
+        build_report(tmp_path)
+
+
+def test_main_group_is_the_largest() -> None:
+    metrics = {"groups": [{"group_id": "a", "members": ["0"]},
+                          {"group_id": "b", "members": ["1", "2"]},
+                          {"group_id": "c", "members": ["3", "4"]}],
+               "refinement": [{"group": "b", "points": 10}, {"group": "c", "points": 20}]}
+    assert main_group(metrics) == "c"
+    assert main_group({}) is None
