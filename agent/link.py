@@ -240,6 +240,9 @@ class AgentLink:
         self.T_group_agent = np.asarray(update.T_group_agent, np.float64).copy()
         if update.group_id != self.group_id:
             self.round = 0  # rounds count per group: the new group's next decoder is newer
+            # Offer weights at the next mapping call: the new group's first federated round
+            # should not wait a whole round_every_mappings period (agents may end before).
+            self._mappings = max(self._mappings, self.round_every_mappings - 1)
         self.epoch, self.group_id = int(update.epoch), update.group_id
         self.group_members = list(update.group_members)
         self._correct_keyframes(dict(zip(update.kf_ids.tolist(), update.T_group_kf,

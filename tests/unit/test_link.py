@@ -259,3 +259,13 @@ def test_image_request_answered_from_the_keyframe_store(warm) -> None:
     protocol.decode(protocol.encode(reply), expected=KeyframeImage)
     missing = link.answer_image(KeyframeImageRequest(agent_id="a0", kf_id=99))
     assert isinstance(missing, ErrorReply) and missing.code == "not_found"
+
+
+def test_joining_a_group_offers_weights_at_the_next_mapping() -> None:
+    link = _link(rounds=100)  # without a merge, weights would wait for 100 mapping calls
+    msgs = _run(link, 0, 3)
+    assert not any(isinstance(m, DecoderWeights) for m in msgs)
+    assert link.apply_update(_update(link, 1, np.eye(4), group="g", members=("a0", "b0")))
+    msgs = _run(link, 3, 6)
+    weights = [m for m in msgs if isinstance(m, DecoderWeights)]
+    assert len(weights) == 1 and weights[0].group_id == "g" and weights[0].round == 0
