@@ -369,15 +369,9 @@ def _follow(sup: Supervisor, bus: Any, names: list[str], frames: int,
 
 def _status(bus: Any) -> dict:
     """The server's status summary, or {} when it does not answer within a second."""
-    from cpslam.protocol import ProtocolError, Status, decode, keys
+    from cpslam.server.client import query_status
 
-    for reply in bus.query(keys.server_status(SESSION), timeout_s=1.0):
-        if reply.ok:
-            try:
-                return decode(reply.payload, expected=Status).summary
-            except ProtocolError:
-                continue
-    return {}
+    return query_status(bus, SESSION, timeout_s=1.0) or {}
 
 
 def _report(out: Path, info: dict, mesh: bool, show: bool) -> None:

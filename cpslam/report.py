@@ -94,7 +94,10 @@ def build_report(run: Path, sequences: dict[str, Path] | None = None, mesh: bool
 
 
 def main_group(metrics: dict) -> str | None:
-    """The group the server wrote as fused_map.*: most members, then most points."""
+    """The group the server wrote as fused_map.* (``main_group`` in its metrics; for older
+    run folders, the server's rule: most members, then most points)."""
+    if "main_group" in metrics:
+        return metrics["main_group"]
     points = {r.get("group"): r.get("points", 0) for r in metrics.get("refinement", [])}
     groups = metrics.get("groups", [])
     if not groups:

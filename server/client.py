@@ -9,11 +9,14 @@ from __future__ import annotations
 import json
 import logging
 import time
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
 from cpslam.common.config.cli import ConnectOpt, SessionOpt
+
+if TYPE_CHECKING:
+    from cpslam.common.bus import Bus
 
 logger = logging.getLogger(__name__)
 
@@ -36,28 +39,33 @@ def status(
 
       cpslam status --connect tcp/10.0.0.5:7447 --session lab --json
     """
+    cfg, bus = _client(connect, session, timeout)
+    with bus:
+        summary = query_status(bus, cfg.transport.session, timeout)
+    if summary is None:
+        typer.echo(f"error: no cpslam-server answered on session {cfg.transport.session!r} "
+                   f"within {timeout:.0f} s", err=True)
+        raise typer.Exit(1)
+    if as_json:
+        typer.echo(json.dumps(summary, indent=2, sort_keys=True))
+    else:
+        typer.echo(format_status(summary))
+
+
+def query_status(bus: Bus, session: str, timeout_s: float = 1.0) -> dict | None:
+    """The server's status summary over `bus`, or None when no valid answer came in time
+    (a malformed reply is logged and skipped)."""
     from cpslam import protocol
     from cpslam.protocol import ProtocolError, Status, keys
 
-    cfg, bus = _client(connect, session, timeout)
-    with bus:
-        replies = bus.query(keys.server_status(cfg.transport.session), timeout_s=timeout)
-    for reply in replies:
+    for reply in bus.query(keys.server_status(session), timeout_s=timeout_s):
         if not reply.ok:
             continue
         try:
-            msg = protocol.decode(reply.payload, expected=Status)
+            return protocol.decode(reply.payload, expected=Status).summary
         except ProtocolError as err:
-            typer.echo(f"error: the server's status reply is malformed: {err}", err=True)
-            raise typer.Exit(1) from None
-        if as_json:
-            typer.echo(json.dumps(msg.summary, indent=2, sort_keys=True))
-        else:
-            typer.echo(format_status(msg.summary))
-        return
-    typer.echo(f"error: no cpslam-server answered on session {cfg.transport.session!r} within "
-               f"{timeout:.0f} s", err=True)
-    raise typer.Exit(1)
+            logger.warning("malformed status reply: %s", err)
+    return None
 
 
 def finalise(

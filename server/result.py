@@ -116,6 +116,7 @@ def finalise_backend(backend: Backend) -> FinalResult:
     main = max(maps, key=lambda g: (len(groups.groups[g].members), len(maps[g])), default=None)
     metrics = _metrics(backend, agents, pg_metrics, refine,
                        {"final_pose_graph_s": t_graph, "refinement_s": t_refine})
+    metrics["main_group"] = main  # the group written as fused_map.* / decoders_<g>.pt
     return FinalResult(agents, maps, decoders, main, graph if graph.num_nodes else None, metrics)
 
 

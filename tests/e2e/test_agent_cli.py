@@ -16,6 +16,7 @@ from typer.testing import CliRunner
 from cpslam.agent.cli import app as agent_app
 from cpslam.cli import app as cpslam_app
 from cpslam.common.trajectory import read_tum
+from cpslam.demo import free_port
 
 pytestmark = pytest.mark.slow
 runner = CliRunner()
@@ -89,7 +90,7 @@ def test_bad_inputs_exit_2_with_a_message(room: Path, tmp_path: Path) -> None:
     result = _agent("--seq", str(room), "--standalone", "--connect", "tcp/127.0.0.1:9")
     assert result.exit_code == 2 and "--standalone" in result.output
     # Networked with nobody listening: a clear message and exit 3 once --wait-timeout passes.
-    result = _agent("--seq", str(room), "--connect", f"tcp/127.0.0.1:{_free_port()}",
+    result = _agent("--seq", str(room), "--connect", f"tcp/127.0.0.1:{free_port()}",
                     "--wait-timeout", "1", "--no-progress", "--out", str(tmp_path / "n"))
     assert result.exit_code == 3, result.output
 
@@ -120,10 +121,3 @@ def test_ctrl_c_saves_what_exists(room: Path, tmp_path: Path) -> None:
     assert len(stamps) == metrics["frames"] > 0
     assert np.isfinite(poses).all()
 
-
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
