@@ -56,3 +56,13 @@ def test_cli_help_and_version() -> None:
     for sub in (c + ["--help"] for c in commands):
         result = runner.invoke(app, sub)
         assert result.exit_code == 0, (sub, result.output)
+
+
+def test_test_module_names_are_unique() -> None:
+    # The test folders are not packages (pytest's default "prepend" import mode): two test
+    # files with one basename make collection fail with "import file mismatch".
+    seen: dict[str, Path] = {}
+    for path in sorted((ROOT / "tests").rglob("*.py")):
+        clash = seen.setdefault(path.name, path)
+        assert clash == path or path.name == "conftest.py", \
+            f"{path.relative_to(ROOT)} and {clash.relative_to(ROOT)} share a module name"
