@@ -27,10 +27,10 @@ import torch
 
 from cpslam.agent.keyframes import KeyframeStore
 from cpslam.agent.mapper import Mapper, View
-from cpslam.agent.tracker import Tracker
 from cpslam.common.camera import Intrinsics
 from cpslam.common.datasets import RGBDFrame
 from cpslam.common.field import Decoders, FeatureCNN, NeuralPointMap
+from cpslam.common.field.tracking import Tracker
 from cpslam.common.field_config import (
     cnn_from_config,
     decoders_from_config,

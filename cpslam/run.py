@@ -13,8 +13,9 @@ group-frame trajectory without any pose-graph correction, for comparison), ``fus
 ``pose_graph.g2o``, ``metrics.json`` (server) and, when the sequences have ground truth,
 ``evaluation.json`` (computed after the run; nothing reads ground truth while it runs).
 
-Relative poses of loops are the coarse geometric estimates (the back end's ``refine_pose``
-hook is left empty: the agent's tracker is not usable from the server side yet).
+Relative poses of loops are the coarse geometric estimates refined by tracking the loop
+keyframe against the other sub-map (`cpslam.server.refine.PoseRefiner`, wired by
+`Backend.from_config`; ``--set loop.refine=false`` keeps the coarse ones).
 """
 
 from __future__ import annotations

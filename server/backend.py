@@ -97,6 +97,8 @@ class LoopRecord:
     seconds: float
     merged: bool = False
     outlier: bool = False
+    method: str = ""  # how T_a_b was found: "ransac+icp", "render" (refined), "coarse" (kept)
+    refinement: dict | None = None  # what `PoseRefiner` did (JSON-able)
 
 
 class Backend:
@@ -109,7 +111,8 @@ class Backend:
         fetch_image: ``(agent_id, kf_id) -> KeyframeImage | None`` (a Zenoh get in the daemon).
         now: monotonic clock (s).
         refine_pose: optional ``(candidate, T_a_b_init, image_a, image_b) -> Registration |
-            None`` refining a coarse loop pose; None uses the coarse estimate.
+            None`` refining a coarse loop pose (`from_config`: a `PoseRefiner` unless
+            ``loop.refine`` is false); None uses the coarse estimate.
         database: loop database (default: `cpslam.server.loops.DescriptorDatabase`).
         register: ``(src_image_b, dst_image_a) -> Registration`` (default: `register_rgbd`).
         decoders_factory: builds fresh `Decoders` to load averaged weights into for
@@ -198,7 +201,11 @@ class Backend:
             "finetune_lr_features": cfg.mapping.lr_features,
         }
         args.update(kwargs)
-        return cls(cfg.loop, cfg.federation, cfg.pose_graph, cfg.refinement, fetch_image, **args)
+        backend = cls(cfg.loop, cfg.federation, cfg.pose_graph, cfg.refinement, fetch_image, **args)
+        if cfg.loop.refine and "refine_pose" not in kwargs:  # the paper's rendering refinement
+            from cpslam.server.refine import PoseRefiner
+            backend.refine_pose = PoseRefiner.from_config(cfg, backend.registry)
+        return backend
 
     # ------------------------------------------------------------------------------ input
 
@@ -307,6 +314,8 @@ class Backend:
             rmse=float(reg.inlier_rmse) if reg is not None and np.isfinite(reg.inlier_rmse)
             else -1.0,
             stamp=self.now() - self.t_start, seconds=time.perf_counter() - t0,
+            method=getattr(reg, "method", ""),
+            refinement=(getattr(reg, "details", None) or {}).get("refinement"),
         )
         self.loops.append(record)
         logger.info("loop %s/%d - %s/%d (%s, %.3f): %s", cand.agent_a, cand.kf_a, cand.agent_b,

@@ -61,6 +61,8 @@ class LoopConfig(Section):
     """Largest correspondence distance (m) in the coarse ICP."""
     icp_voxel_size: PositiveFloat = 0.05
     """Voxel size (m) the clouds are reduced to before the coarse ICP."""
+    refine: bool = True
+    """Track the loop keyframe against the other sub-map from the coarse pose (docs/loops.md)."""
     register_iters: PositiveInt = 200
     """Tracking steps refining a loop's relative pose against the other sub-map (our choice)."""
     verify_max_residual: PositiveFloat = 0.05

@@ -8,9 +8,9 @@ import pytest
 import torch
 
 from cpslam.agent.mapper import Mapper, View
-from cpslam.agent.tracker import Tracker, outlier_mask, sample_pixels
 from cpslam.common.camera import Intrinsics
 from cpslam.common.field import Decoders, FeatureCNN, NeuralPointMap, RaySampler
+from cpslam.common.field.tracking import Tracker, outlier_mask, sample_pixels
 from cpslam.common.geometry import se3_exp
 
 

@@ -17,6 +17,9 @@ outlier mask, recomputed at every step from the batch medians:
 The map is fixed while tracking, so the neighbour search of the samples is reused across
 steps until the pose has moved the farthest sample by more than `reuse_neighbours` metres
 (the decoders still see exact offsets x - p_k, recomputed in torch every step).
+
+Used by the agent (every frame against its own map) and by the server (a loop keyframe against
+another agent's sub-map, `cpslam.server.refine`), so it lives with the field in `common/`.
 """
 
 from __future__ import annotations
@@ -24,14 +27,19 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
-from cpslam.common.camera import Intrinsics
-from cpslam.common.field import Decoders, NeuralPointMap, RaySampler, camera_rays
-from cpslam.common.field.renderer import render_samples
+from cpslam.common.field.decoders import Decoders
+from cpslam.common.field.points import NeuralPointMap
+from cpslam.common.field.renderer import camera_rays, render_samples
+from cpslam.common.field.sampler import RaySampler
 from cpslam.common.geometry_torch import torch_se3_exp
+
+if TYPE_CHECKING:
+    from cpslam.common.camera import Intrinsics
 
 logger = logging.getLogger(__name__)
 
@@ -175,6 +183,9 @@ class Tracker:
                     best = (value, xi.detach().clone(), it)
                 if self.early_stop_tol > 0 and len(losses) > 1 and \
                         abs(losses[-2] - value) <= self.early_stop_tol * max(losses[-2], 1e-12):
+                    break
+                if not loss.requires_grad:  # no sample has a map point near: nothing to move
+                    logger.debug("tracking: no sample reaches the map at step %d, stopping", it)
                     break
                 optimiser.zero_grad(set_to_none=True)
                 loss.backward()
