@@ -131,7 +131,7 @@ class TrackingConfig(Section):
     n_pixels: PositiveInt = 1500
     """Pixels sampled per step (M2)."""
     lr: PositiveFloat = 0.0015
-    """Adam learning rate for the pose (quaternion and translation)."""
+    """Adam learning rate of the se(3) pose increment xi (T = T_init @ exp(xi), camera frame)."""
     init: Literal["zero_motion", "constant_velocity"] = "zero_motion"
     """Initial pose of a new frame: the previous pose (the paper) or a constant-velocity guess."""
     color_weight: NonNegativeFloat = 0.0
