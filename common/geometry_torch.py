@@ -11,17 +11,22 @@ Twists are ``[rho (translation), phi (rotation)]``; quaternions are xyzw.
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 __all__ = [
     "torch_compose",
+    "torch_interpolate_pose",
     "torch_invert",
     "torch_matrix_to_quat",
     "torch_pose_from_tq",
     "torch_quat_to_matrix",
     "torch_se3_exp",
+    "torch_se3_log",
     "torch_skew",
     "torch_so3_exp",
+    "torch_so3_log",
     "torch_transform_points",
 ]
 
@@ -40,6 +45,31 @@ def torch_so3_exp(phi: torch.Tensor) -> torch.Tensor:
     return eye + a[..., None, None] * k + b[..., None, None] * (k @ k)
 
 
+def torch_so3_log(R: torch.Tensor) -> torch.Tensor:
+    """Rotation vectors ``[..., 3]`` (angle in [0, pi]) from rotation matrices ``[..., 3, 3]``.
+
+    Through the quaternion (Shepperd), as ``geometry.so3_log``: accurate at tiny angles and
+    near pi. The log jumps at pi (the axis flips sign), so its gradient is only meaningful
+    below pi.
+    """
+    q = torch_matrix_to_quat(R)
+    v, w = q[..., :3], q[..., 3]
+    n2 = (v * v).sum(-1)
+    # Small angle <=> x = tan^2(angle / 2) small; there w ~ 1, far from zero.
+    limit = _SMALL_ANGLE_FLOAT64 if R.dtype == torch.float64 else _SMALL_ANGLE_LOW_PRECISION
+    small = n2 < (math.tan(0.5 * limit) ** 2) * (w * w)
+    # angle / |v| = 2 atan2(|v|, w) / |v|. Its derivative cancels badly for small |v|, so the
+    # series of atan(s)/s in x = s^2 (s = |v| / w) is used there; dummy values on the branch
+    # not taken keep both value and gradient finite ("double where").
+    n = torch.sqrt(torch.where(small, torch.ones_like(n2), n2))
+    scale_closed = 2.0 * torch.atan2(n, w) / n
+    w_safe = torch.where(small, w, torch.ones_like(w))
+    x = torch.where(small, n2, torch.zeros_like(n2)) / (w_safe * w_safe)
+    atan_series = 1.0 - x / 3.0 * (1.0 - 0.6 * x * (1.0 - x * 5.0 / 7.0 * (1.0 - x * 7.0 / 9.0)))
+    scale = torch.where(small, 2.0 * atan_series / w_safe, scale_closed)
+    return scale[..., None] * v
+
+
 def torch_se3_exp(xi: torch.Tensor) -> torch.Tensor:
     """Poses ``[..., 4, 4]`` from twists ``xi [..., 6] = [rho, phi]`` (true SE(3) exp)."""
     _check_last(xi, 6, "xi")
@@ -51,6 +81,28 @@ def torch_se3_exp(xi: torch.Tensor) -> torch.Tensor:
     R = eye + a[..., None, None] * k + b[..., None, None] * k2
     V = eye + b[..., None, None] * k + c[..., None, None] * k2
     return _assemble(R, (V @ rho[..., None])[..., 0])
+
+
+def torch_se3_log(T: torch.Tensor) -> torch.Tensor:
+    """Twists ``[..., 6] = [rho, phi]`` from poses ``[..., 4, 4]``; inverse of ``torch_se3_exp``."""
+    _check_pose(T, "T")
+    phi = torch_so3_log(T[..., :3, :3])
+    theta2 = (phi * phi).sum(-1)
+    limit = _SMALL_ANGLE_FLOAT64 if T.dtype == torch.float64 else _SMALL_ANGLE_LOW_PRECISION
+    small = theta2 < limit * limit
+    th = torch.sqrt(torch.where(small, torch.ones_like(theta2), theta2))
+    # V^-1 = I - K/2 + d K^2 with d = (1 - h cot h) / th^2, h = th / 2: finite up to and at
+    # pi, since the log's angle is at most pi (h <= pi/2, so sin h > 0).
+    half = 0.5 * th
+    d_closed = (1.0 - half * torch.cos(half) / torch.sin(half)) / (th * th)
+    x = theta2
+    d_series = 1.0 / 12.0 + x * (1.0 / 720.0 + x * (1.0 / 30240.0 + x / 1209600.0))
+    d = torch.where(small, d_series, d_closed)
+    k = torch_skew(phi)
+    eye = torch.eye(3, dtype=T.dtype, device=T.device)
+    V_inv = eye - 0.5 * k + d[..., None, None] * (k @ k)
+    rho = (V_inv @ T[..., :3, 3:4])[..., 0]
+    return torch.cat([rho, phi], dim=-1)
 
 
 def torch_skew(v: torch.Tensor) -> torch.Tensor:
@@ -131,6 +183,30 @@ def torch_transform_points(T: torch.Tensor, xyz: torch.Tensor) -> torch.Tensor:
     _check_pose(T, "T")
     _check_last(xyz, 3, "xyz")
     return xyz @ T[..., :3, :3].transpose(-1, -2) + T[..., None, :3, 3]
+
+
+def torch_interpolate_pose(
+    T0: torch.Tensor, T1: torch.Tensor, alpha: float | torch.Tensor
+) -> torch.Tensor:
+    """Pose between T0 (alpha=0) and T1 (alpha=1): slerp on rotation, lerp on translation.
+
+    ``alpha`` may be a number or a tensor whose shape broadcasts against the poses' leading
+    dimensions (alpha ``[M]`` with single poses gives ``[M, 4, 4]``); gradients flow to the
+    poses and to alpha. A number outside [0, 1] is refused; a tensor is not checked (that
+    would force a device sync every call).
+    """
+    _check_pose(T0, "T0")
+    _check_pose(T1, "T1")
+    if not isinstance(alpha, torch.Tensor):
+        if not 0.0 <= alpha <= 1.0:  # also refuses NaN
+            raise ValueError("torch_interpolate_pose: alpha must lie in [0, 1]")
+    alpha = torch.as_tensor(alpha, dtype=T0.dtype, device=T0.device)
+    R0, R1 = T0[..., :3, :3], T1[..., :3, :3]
+    dphi = torch_so3_log(R0.transpose(-1, -2) @ R1)
+    a = alpha[..., None]
+    R = R0 @ torch_so3_exp(a * dphi)
+    t = (1.0 - a) * T0[..., :3, 3] + a * T1[..., :3, 3]
+    return _assemble(R, t)
 
 
 # --------------------------------------------------------------------------------------------

@@ -334,3 +334,110 @@ def test_torch_shape_errors() -> None:
         gt.torch_se3_exp(torch.zeros(3))
     with pytest.raises(ValueError, match="T"):
         gt.torch_invert(torch.eye(3))
+
+
+# ------------------------------------------------------------------------------ torch logs
+
+
+def test_torch_logs_match_numpy_and_scipy(twists: np.ndarray) -> None:
+    T = g.se3_exp(twists)
+    below_pi = np.linalg.norm(twists[:, 3:], axis=1) < np.pi  # where the log is unique
+    R = torch.from_numpy(T[:, :3, :3])
+    phi = gt.torch_so3_log(R).numpy()
+    np.testing.assert_allclose(phi, g.so3_log(T[:, :3, :3]), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(phi[below_pi], twists[below_pi, 3:], rtol=0, atol=1e-9)
+    scipy_phi = Rotation.from_matrix(T[below_pi, :3, :3]).as_rotvec()
+    np.testing.assert_allclose(phi[below_pi], scipy_phi, rtol=0, atol=1e-9)
+    xi = gt.torch_se3_log(torch.from_numpy(T)).numpy()
+    np.testing.assert_allclose(xi, g.se3_log(T), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(xi[below_pi], twists[below_pi], rtol=0, atol=1e-9)
+    # at exactly pi the axis sign is ambiguous; the pose is not
+    np.testing.assert_allclose(g.se3_exp(xi), T, atol=1e-9)
+    # batched over leading dimensions, like the numpy versions
+    T_b = torch.from_numpy(T[:300].reshape(3, 100, 4, 4))
+    assert gt.torch_se3_log(T_b).shape == (3, 100, 6)
+    assert gt.torch_so3_log(T_b[..., :3, :3]).shape == (3, 100, 3)
+
+
+def test_torch_logs_tiny_angles_and_float32(twists: np.ndarray) -> None:
+    for angle in (0.0, 1e-12, 1e-9, 1e-6, 1e-3):
+        phi = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8]) * angle
+        out = gt.torch_so3_log(torch.from_numpy(g.so3_exp(phi))).numpy()
+        np.testing.assert_allclose(out, phi, rtol=1e-6, atol=1e-300)
+    tiny = np.array([1e-10, -2e-10, 3e-10, 1e-12, -1e-12, 2e-12])
+    out = gt.torch_se3_log(torch.from_numpy(g.se3_exp(tiny))).numpy()
+    np.testing.assert_allclose(out, tiny, rtol=1e-6, atol=1e-22)
+    T32 = torch.from_numpy(g.se3_exp(twists)).float()
+    xi32 = gt.torch_se3_log(T32)
+    assert xi32.dtype == torch.float32
+    # float32 poses hold ~1e-7 relative; the log near pi amplifies that a little
+    np.testing.assert_allclose(xi32.numpy(), g.se3_log(T32.double().numpy()), atol=1e-5)
+
+
+@pytest.mark.parametrize("angle", [0.0, 1e-7, 0.0499, 0.0501, 1.0, np.pi - 0.05])
+def test_torch_logs_gradients_invert_exp(angle: float) -> None:
+    """d log(exp(xi)) / d xi is the identity, on both sides of every series switch."""
+    axis = torch.tensor([0.3, -0.5, 0.8], dtype=torch.float64)
+    phi = axis / torch.linalg.vector_norm(axis) * angle
+    xi = torch.cat([torch.tensor([0.2, -0.1, 0.4], dtype=torch.float64), phi])
+    eye = torch.eye(6, dtype=torch.float64)
+    jac = torch.autograd.functional.jacobian(lambda v: gt.torch_se3_log(gt.torch_se3_exp(v)), xi)
+    torch.testing.assert_close(jac, eye, atol=1e-7, rtol=0)
+    jac = torch.autograd.functional.jacobian(lambda v: gt.torch_so3_log(gt.torch_so3_exp(v)), phi)
+    torch.testing.assert_close(jac, eye[:3, :3], atol=1e-7, rtol=0)
+    R = gt.torch_so3_exp(phi).requires_grad_(True)
+    assert torch.autograd.gradcheck(gt.torch_so3_log, (R,), eps=1e-7, atol=1e-6)
+    T = gt.torch_se3_exp(xi).requires_grad_(True)
+    assert torch.autograd.gradcheck(gt.torch_se3_log, (T,), eps=1e-7, atol=1e-6)
+
+
+def test_torch_log_gradients_finite_at_identity_and_pi() -> None:
+    for dtype in (torch.float32, torch.float64):
+        for angle in (0.0, np.pi):
+            R = gt.torch_so3_exp(torch.tensor([0.0, 0.0, angle], dtype=dtype))
+            T = torch.eye(4, dtype=dtype)
+            T[:3, :3] = R
+            T.requires_grad_(True)
+            gt.torch_se3_log(T).sum().backward()
+            assert torch.isfinite(T.grad).all(), (dtype, angle)
+
+
+def test_torch_interpolate_pose_matches_numpy_and_slerp(rng: np.random.Generator) -> None:
+    T0, T1 = g.se3_exp(rng.normal(size=(2, 6)))
+    alphas = np.linspace(0.0, 1.0, 7)
+    T = gt.torch_interpolate_pose(
+        torch.from_numpy(T0), torch.from_numpy(T1), torch.from_numpy(alphas)
+    ).numpy()
+    assert T.shape == (7, 4, 4)
+    np.testing.assert_allclose(T, g.interpolate_pose(T0, T1, alphas), atol=1e-12)
+    slerp = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([T0[:3, :3], T1[:3, :3]])))
+    np.testing.assert_allclose(T[:, :3, :3], slerp(alphas).as_matrix(), atol=1e-12)
+    np.testing.assert_allclose(T[0], T0, atol=1e-12)
+    np.testing.assert_allclose(T[-1], T1, atol=1e-12)
+    # batched poses with one alpha each
+    A, B = g.se3_exp(rng.normal(size=(2, 20, 6)))
+    a = rng.uniform(size=20)
+    out = gt.torch_interpolate_pose(torch.from_numpy(A), torch.from_numpy(B), torch.from_numpy(a))
+    np.testing.assert_allclose(out.numpy(), g.interpolate_pose(A, B, a), atol=1e-12)
+    one = gt.torch_interpolate_pose(
+        torch.from_numpy(T0).float(), torch.from_numpy(T1).float(), 0.25
+    )
+    assert one.shape == (4, 4) and one.dtype == torch.float32
+    np.testing.assert_allclose(one.numpy(), g.interpolate_pose(T0, T1, 0.25), atol=1e-5)
+    with pytest.raises(ValueError, match="alpha"):
+        gt.torch_interpolate_pose(torch.from_numpy(T0), torch.from_numpy(T1), 1.5)
+
+
+def test_torch_interpolate_pose_gradcheck() -> None:
+    gen = torch.Generator().manual_seed(3)
+    xi0, xi1 = torch.randn(2, 6, generator=gen, dtype=torch.float64)
+    alpha = torch.tensor([0.0, 0.3, 1.0], dtype=torch.float64)
+
+    def interp(a: torch.Tensor, v0: torch.Tensor, v1: torch.Tensor) -> torch.Tensor:
+        return gt.torch_interpolate_pose(gt.torch_se3_exp(v0), gt.torch_se3_exp(v1), a)
+
+    inputs = tuple(x.clone().requires_grad_(True) for x in (alpha, xi0, xi1))
+    assert torch.autograd.gradcheck(interp, inputs, eps=1e-6, atol=1e-6)
+    # equal poses: the relative rotation is the identity, where the log switches to its series
+    same = tuple(x.clone().requires_grad_(True) for x in (alpha, xi0, xi0))
+    assert torch.autograd.gradcheck(interp, same, eps=1e-6, atol=1e-6)
