@@ -50,7 +50,12 @@ FORMAT_VERSION = 1
 
 @dataclass
 class FrameResult:
-    """What happened to one frame. Times in seconds; map_steps is 0 when it did not map."""
+    """What happened to one frame. Times in seconds; map_steps is 0 when it did not map.
+
+    map_time_s is the whole mapping call (adding points, co-visibility, optimisation);
+    map_optimise_time_s only its `map_steps` optimisation steps, so a per-step time is
+    map_optimise_time_s / map_steps.
+    """
 
     index: int
     timestamp: float
@@ -60,6 +65,7 @@ class FrameResult:
     track_loss: float
     map_time_s: float
     map_steps: int
+    map_optimise_time_s: float
     n_points: int
     is_keyframe: bool
     kf_id: int | None
@@ -185,11 +191,11 @@ class Odometry:
             self.point_map.set_keyframe_poses(kf.kf_id, T_world_cam, self.agent_id)
             kf_id = kf.kf_id
 
-        map_time, map_steps = 0.0, 0
+        map_time, map_steps, optimise_time = 0.0, 0, 0.0
         if count % self.map_every == 0:
             t1 = time.perf_counter()
-            map_steps = self._map(rgb, depth, rgb_t, depth_t, T_world_cam, kf_id, count,
-                                  generator)
+            map_steps, optimise_time = self._map(rgb, depth, rgb_t, depth_t, T_world_cam,
+                                                 kf_id, count, generator)
             map_time = time.perf_counter() - t1
 
         self._stamps.append(float(frame.timestamp))
@@ -202,8 +208,8 @@ class Odometry:
             index=int(frame.index), timestamp=float(frame.timestamp),
             T_world_cam=self._poses[-1].copy(), track_time_s=track_time,
             track_iters=track_iters, track_loss=track_loss, map_time_s=map_time,
-            map_steps=map_steps, n_points=len(self.point_map), is_keyframe=kf_id is not None,
-            kf_id=kf_id,
+            map_steps=map_steps, map_optimise_time_s=optimise_time,
+            n_points=len(self.point_map), is_keyframe=kf_id is not None, kf_id=kf_id,
         )
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
@@ -248,7 +254,9 @@ class Odometry:
 
     def _map(self, rgb: np.ndarray, depth: np.ndarray, rgb_t: torch.Tensor,
              depth_t: torch.Tensor, T_world_cam: np.ndarray, kf_id: int | None, count: int,
-             generator: torch.Generator) -> int:
+             generator: torch.Generator) -> tuple[int, float]:
+        """Add points, pick co-visible keyframes, optimise; returns the optimisation's steps
+        and seconds (the caller times the whole call)."""
         anchor = self.keyframes.latest
         assert anchor is not None  # frame 0 is always a keyframe
         ids = self.mapper.add_points(self.point_map, self.decoders, self.cnn, rgb, depth,
@@ -272,7 +280,7 @@ class Odometry:
         self.fused = False
         result = self.mapper.optimise(self.point_map, self.decoders, views, iters, n_pixels,
                                       generator)
-        return result.steps
+        return result.steps, result.seconds
 
     # ---------------------------------------------------------------------------- save/load
 

@@ -160,3 +160,32 @@ def test_frames_must_match_intrinsics_and_depth_is_clipped(sequence_dir: Path) -
     odometry.step(frames[0])
     kept = odometry.keyframes.get(0).depth_small
     assert kept.max() <= 2.5 and (kept == 0).any() and (frames[0].depth > 2.5).any()
+
+
+def test_mapping_time_per_step_counts_only_the_optimisation(sequence_dir: Path,
+                                                            monkeypatch) -> None:
+    """metrics.json's per-step mapping time divides the optimisation's own time, not the
+    whole mapping call (adding points and co-visibility come on top)."""
+    from cpslam.agent.standalone import frame_metrics
+
+    cfg = load_config("tiny", overrides=QUICK, env={})
+    frames, seq = _frames(sequence_dir, cfg.camera.downscale, n=2)
+    odometry = Odometry.from_config(cfg, seq.intrinsics.scaled(cfg.camera.downscale), "cpu")
+    add_points = odometry.mapper.add_points
+
+    def slow_add_points(*args, **kwargs):
+        time.sleep(0.3)  # stands in for an expensive insertion
+        return add_points(*args, **kwargs)
+
+    monkeypatch.setattr(odometry.mapper, "add_points", slow_add_points)
+    results = [odometry.step(frame) for frame in frames]
+    first = results[0]
+    assert first.map_steps == 20 and 0 < first.map_optimise_time_s
+    assert first.map_time_s - first.map_optimise_time_s >= 0.3
+    assert results[1].map_steps == 0 and results[1].map_optimise_time_s == 0.0
+    metrics = frame_metrics(odometry, results, 1.0, False, "cpu")
+    assert metrics["mapping_time_per_step_s"] == pytest.approx(first.map_optimise_time_s / 20)
+    assert metrics["mapping_time_per_call_s"] == pytest.approx(first.map_time_s)
+    assert metrics["mapping_time_total_s"] == pytest.approx(first.map_time_s)
+    assert metrics["mapping_optimise_time_total_s"] == pytest.approx(first.map_optimise_time_s)
+    assert metrics["per_frame"][0]["map_optimise_time_s"] == first.map_optimise_time_s
