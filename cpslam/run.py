@@ -30,6 +30,7 @@ import numpy as np
 import typer
 
 from cpslam.common.config.cli import ConfigOpt, DeviceOpt, PresetOpt, SeedOpt, SetOpt
+from cpslam.protocol import keys
 
 if TYPE_CHECKING:
     from cpslam.common.bus import Bus
@@ -66,7 +67,7 @@ class LockstepBarrier:
 
     def __init__(self, bus: Bus, session: str) -> None:
         self.bus = bus
-        self.key = f"cpslam/{session}/run/barrier"
+        self.key = keys.run_barrier(session)
         self.sub = bus.subscribe(self.key, queue_size=16)
         self.count = 0
 

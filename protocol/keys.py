@@ -14,6 +14,7 @@ Everything lives under ``cpslam/<session>/``::
     server/control                    Control           operator -> server -> agents (put)
     alive/agent/<agent>               liveliness token of an agent
     alive/server                      liveliness token of the server
+    run/barrier                       opaque marker     `cpslam run` only (in-process bus)
 
 Ids (session, agent, group) are 1-64 characters of ``[A-Za-z0-9_-]``, so they never contain
 the key-expression specials ``/ * $ ? #``; keyframe ids are non-negative ints.
@@ -52,11 +53,13 @@ __all__ = [
     "alive_agents",
     "alive_server",
     "alive_all",
+    "run_barrier",
     "parse_agent_key",
     "parse_image_key",
     "parse_server_agent_key",
     "parse_group_decoder",
     "parse_alive_agent",
+    "key_subject",
 ]
 
 ROOT = "cpslam"
@@ -219,6 +222,14 @@ def alive_all(session: str) -> str:
     return f"{_base(session)}/alive/**"
 
 
+# --- in-process harness ----------------------------------------------------------------------
+
+
+def run_barrier(session: str) -> str:
+    """Key of `cpslam run`'s lock-step barrier marker (in-memory bus only, never on a network)."""
+    return f"{_base(session)}/run/barrier"
+
+
 # --- parsing ---------------------------------------------------------------------------------
 
 
@@ -271,3 +282,27 @@ def parse_alive_agent(session: str, key: str) -> str:
     if len(parts) != 3 or parts[:2] != ["alive", "agent"]:
         raise ProtocolError(f"liveliness key: expected alive/agent/<id>, got {key!r:.120}")
     return check_id(parts[2], "agent id")
+
+
+def key_subject(session: str, key: object) -> tuple[str, str, str] | None:
+    """Whom a concrete key of `session` concerns, for traffic accounting.
+
+    ``("agent", agent, topic)`` for ``agent/<agent>/<topic>``, ``agent/<agent>/image/<kf>``
+    (topic ``"image"``) and ``server/agent/<agent>/<topic>``; ``("group", group, "decoder")``
+    for ``server/group/<group>/decoder``; None for anything else (status, control,
+    liveliness, wildcards, other sessions, malformed keys).
+    """
+    if not isinstance(key, str) or not key.startswith(_base(session) + "/"):
+        return None
+    parsers = (
+        lambda: ("agent", *parse_agent_key(session, key)),
+        lambda: ("agent", parse_image_key(session, key)[0], "image"),
+        lambda: ("agent", *parse_server_agent_key(session, key)),
+        lambda: ("group", parse_group_decoder(session, key), "decoder"),
+    )
+    for parse in parsers:
+        try:
+            return parse()
+        except ProtocolError:
+            continue
+    return None

@@ -228,7 +228,7 @@ class Backend:
             self.registry.agents[agent_id].alive = False
         for rnd in self.rounds.values():
             rnd.drop(agent_id)
-        logger.info("agent %s left", agent_id)
+        # No log line: the caller (the node watching liveliness) reports the leave once.
 
     # ------------------------------------------------------------------------------- work
 

@@ -39,6 +39,7 @@ from cpslam.protocol import (
 )
 from cpslam.server.backend import Backend, Outgoing
 from cpslam.server.export import export_run
+from cpslam.server.traffic import DecoderFanout, KeyCounter, traffic_per_agent, traffic_per_group
 
 if TYPE_CHECKING:
     from cpslam.common.bus import Bus
@@ -91,6 +92,8 @@ class ServerNode:
         self._events_lock = threading.Lock()
         self._handles: list[Any] = []
         self._subs: list[Any] = []
+        self._received = KeyCounter()  # agents' messages per concrete key (daemon thread only)
+        self._fanout = DecoderFanout()  # group decoder bytes per receiving agent
 
     # ------------------------------------------------------------------------- lifecycle
 
@@ -150,6 +153,7 @@ class ServerNode:
                 self.control = msg
         batch = []
         while (sample := self._subs[0].get(timeout=0)) is not None:
+            self._received.add(sample.key, len(sample.payload))
             msg = self._decode(sample.key, sample.payload, None)
             if msg is None:
                 continue
@@ -209,9 +213,13 @@ class ServerNode:
                 logger.error("no key for outgoing %s to %s", type(msg).__name__, item.target)
                 continue
             try:
-                self.bus.publish(key, protocol.encode(msg))
+                payload = protocol.encode(msg)
+                self.bus.publish(key, payload)
             except ProtocolError as exc:
                 logger.error("could not send %s on %s: %s", type(msg).__name__, key, exc)
+                continue
+            if isinstance(msg, GroupDecoder):
+                self._fanout.delivered(self._decoder_recipients(item.target), len(payload))
 
     def fetch_image(self, agent_id: str, kf_id: int) -> KeyframeImage | None:
         """A keyframe's RGB-D from the agent's image queryable; None if it cannot be had."""
@@ -247,11 +255,17 @@ class ServerNode:
                 self.persist()
                 self.publish(self.backend.step())
                 self.finalised = self.backend.finalise()
-                traffic = self.bus.stats()
+                traffic, uptime = self.bus.stats(), time.monotonic() - self._t_start
+                received = self._received.table()
+                # The bus counts the agents' messages under the subscribed wildcard; per agent
+                # they come from the node's own counts under each concrete key.
+                by_key = {"sent": traffic["sent"], "received": {**traffic["received"], **received}}
                 self.finalised.metrics["bus"] = {
                     "dropped": dict(self.dropped), "traffic": traffic,
-                    "per_agent": traffic_per_agent(self.session, traffic,
-                                                   time.monotonic() - self._t_start)}
+                    "received_by_key": received,
+                    "per_agent": traffic_per_agent(self.session, by_key, uptime,
+                                                   self._fanout.table()),
+                    "per_group": traffic_per_group(self.session, traffic["sent"], uptime)}
                 self.finalised.metrics["process"] = {
                     "peak_rss_mb": peak_rss_mb(), "uptime_s": time.monotonic() - self._t_start}
                 export_run(self.finalised, self.run_dir)
@@ -303,6 +317,15 @@ class ServerNode:
         with self._events_lock:
             self._status, self._status_at = status, time.monotonic()
 
+    def _decoder_recipients(self, group_id: str) -> list[str]:
+        # Every agent subscribes to every group's decoder: all agents present receive it.
+        with self._events_lock:
+            present = sorted(a for a, up in self._present.items() if up)
+        if present:
+            return present
+        group = self.backend.groups.groups.get(group_id)  # no liveliness seen (yet)
+        return list(group.members) if group is not None else []
+
     def _joined(self, key: str) -> None:
         self._presence(key, True)
         with self._events_lock:
@@ -335,29 +358,3 @@ class ServerNode:
                 with self._lock:
                     self.backend.agent_left(agent)
 
-
-def traffic_per_agent(session: str, traffic: dict, seconds: float) -> dict[str, dict]:
-    """Bytes per agent and key expression (agent -> server and server -> agent), with rates
-    over `seconds` (the server's uptime)."""
-    out: dict[str, dict] = {}
-    prefix = f"cpslam/{session}/"
-    for direction, table in (("from_agent", traffic.get("received", {})),
-                             ("to_agent", traffic.get("sent", {}))):
-        for key, row in table.items():
-            parts = key[len(prefix):].split("/") if key.startswith(prefix) else []
-            if parts[:1] == ["agent"] and len(parts) >= 3:
-                agent, topic = parts[1], "/".join(parts[2:3])
-            elif parts[:2] == ["server", "agent"] and len(parts) >= 4:
-                agent, topic = parts[2], parts[3]
-            else:
-                continue
-            entry = out.setdefault(agent, {"from_agent": {}, "to_agent": {}})
-            cell = entry[direction].setdefault(topic, {"messages": 0, "bytes": 0})
-            cell["messages"] += int(row.get("messages", 0))
-            cell["bytes"] += int(row.get("bytes", 0))
-    for entry in out.values():
-        for direction in ("from_agent", "to_agent"):
-            total = sum(c["bytes"] for c in entry[direction].values())
-            entry[f"{direction}_bytes"] = total
-            entry[f"{direction}_bytes_per_s"] = total / max(seconds, 1e-9)
-    return out

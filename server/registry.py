@@ -146,7 +146,8 @@ class Registry:
         if rec is None:
             rec = AgentRecord(agent_id, len(self.agents), seq_floor=self.first_seq - 1)
             self.agents[agent_id] = rec
-            logger.info("agent %s joined (index %d)", agent_id, rec.index)
+            # The join itself is logged once, by the node that sees the agent's liveliness.
+            logger.debug("agent %s registered (index %d)", agent_id, rec.index)
         return rec
 
     def handle(self, msg: Message, nbytes: int = 0) -> list[Ack]:

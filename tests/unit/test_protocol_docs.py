@@ -112,6 +112,7 @@ def test_every_key_expression_is_documented():
         keys.alive_all("S"),
         keys.all_agents("S"),
         keys.all_agents_topic("S", "keyframe"),
+        keys.run_barrier("S"),
     }
     for key in built:
         assert key.startswith("cpslam/S/")

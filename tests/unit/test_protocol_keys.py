@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import ast
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -37,6 +39,7 @@ def test_server_and_liveliness_keys():
     assert keys.alive_agents(S) == "cpslam/demo/alive/agent/*"
     assert keys.alive_server(S) == "cpslam/demo/alive/server"
     assert keys.alive_all(S) == "cpslam/demo/alive/**"
+    assert keys.run_barrier(S) == "cpslam/demo/run/barrier"
 
 
 def test_wildcards():
@@ -86,6 +89,21 @@ def test_parse_round_trips():
     assert keys.parse_server_agent_key(S, keys.server_agent_ack(S, A)) == (A, "ack")
     assert keys.parse_group_decoder(S, keys.server_group_decoder(S, "g")) == "g"
     assert keys.parse_alive_agent(S, keys.alive_agent(S, A)) == A
+
+
+def test_key_subject_names_the_agent_or_group_of_a_key():
+    for topic in keys.AGENT_TOPICS:
+        assert keys.key_subject(S, keys.agent_topic(S, A, topic)) == ("agent", A, topic)
+    assert keys.key_subject(S, keys.agent_image(S, A, 7)) == ("agent", A, "image")
+    assert keys.key_subject(S, keys.server_agent_update(S, A)) == ("agent", A, "update")
+    assert keys.key_subject(S, keys.server_agent_ack(S, A)) == ("agent", A, "ack")
+    assert keys.key_subject(S, keys.server_group_decoder(S, "g")) == ("group", "g", "decoder")
+    others = [keys.all_agents(S), keys.all_group_decoders(S), keys.agent_image_queryable(S, A),
+              keys.server_status(S), keys.server_control(S), keys.alive_agent(S, A),
+              keys.run_barrier(S), keys.agent_keyframe("other", A), "cpslam/demo",
+              "elsewhere/agent/a/keyframe", None]
+    for key in others:
+        assert keys.key_subject(S, key) is None, key
 
 
 @pytest.mark.parametrize(
@@ -138,6 +156,44 @@ def test_any_text_is_a_valid_id_or_refused(session, agent):
     assert valid
     assert keys.parse_agent_key(session, key) == (agent, "frames")
     assert not set(agent) & set("/*$?#")
+
+
+def _key_literals(path: Path) -> list[tuple[int, str]]:
+    """(line, text) of string literals and f-strings in `path` that start with "cpslam/"."""
+    tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
+    # An f-string counts once, by its leading text; its inner pieces are not literals.
+    pieces = {id(v) for n in ast.walk(tree) if isinstance(n, ast.JoinedStr) for v in n.values}
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.JoinedStr) and node.values:
+            head = node.values[0]
+            text = head.value if isinstance(head, ast.Constant) else ""
+        elif isinstance(node, ast.Constant) and id(node) not in pieces:
+            text = node.value
+        else:
+            continue
+        if isinstance(text, str) and text.startswith(f"{keys.ROOT}/"):
+            found.append((node.lineno, text))
+    return found
+
+
+def test_only_protocol_keys_spells_key_expressions():
+    root = Path(__file__).resolve().parents[2]
+    own = root / "protocol" / "keys.py"
+    files = [p for folder in ("agent", "server", "common", "cpslam", "protocol")
+             for p in sorted((root / folder).rglob("*.py")) if p.resolve() != own]
+    assert len(files) > 20, f"source tree not found under {root}"
+    offenders = [f"{p.relative_to(root)}:{line}: {text!r}" for p in files
+                 for line, text in _key_literals(p)]
+    assert not offenders, "build keys with cpslam.protocol.keys:\n" + "\n".join(offenders)
+
+
+def test_key_literal_finder_sees_plain_and_f_strings(tmp_path: Path):
+    src = tmp_path / "m.py"
+    src.write_text('"""Docstring naming cpslam/x/agent/a/keyframe is prose."""\n'
+                   'a = "cpslam/s/agent/a/keyframe"\nb = f"cpslam/{a}/run"\n'
+                   'c = f"{a}/cpslam/"\nd = "cpslam.protocol"\n')
+    assert [line for line, _ in _key_literals(src)] == [2, 3]
 
 
 def test_protocol_imports_no_torch_zenoh_or_common():

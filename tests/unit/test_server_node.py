@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+import logging
 import time
 from pathlib import Path
 
@@ -11,8 +13,10 @@ from cpslam import protocol
 from cpslam.common.bus import InMemoryBus, InMemoryNetwork
 from cpslam.common.bus.subscription import Sample, Subscription
 from cpslam.common.config import load_config
-from cpslam.protocol import Ack, KeyframeMsg, keys
-from cpslam.server.node import ServerNode, traffic_per_agent
+from cpslam.protocol import Ack, GroupDecoder, KeyframeMsg, keys
+from cpslam.server.backend import Outgoing
+from cpslam.server.node import ServerNode
+from cpslam.server.traffic import traffic_per_agent, traffic_per_group
 
 SESSION = "default"
 
@@ -94,17 +98,68 @@ def test_traffic_per_agent_groups_keys_and_rates() -> None:
     traffic = {
         "received": {"cpslam/s/agent/a/keyframe": {"messages": 2, "bytes": 100},
                      "cpslam/s/agent/a/submap": {"messages": 1, "bytes": 900},
-                     "cpslam/s/agent/b/frames": {"messages": 1, "bytes": 50}},
+                     "cpslam/s/agent/b/frames": {"messages": 1, "bytes": 50},
+                     "cpslam/s/agent/*/*": {"messages": 4, "bytes": 1050}},
         "sent": {"cpslam/s/server/agent/a/ack": {"messages": 3, "bytes": 30},
                  "cpslam/s/agent/a/image/4": {"messages": 1, "bytes": 10},
                  "cpslam/s/server/group/g/decoder": {"messages": 1, "bytes": 999}},
     }
-    out = traffic_per_agent("s", traffic, seconds=10.0)
+    decoders = {"a": {"messages": 1, "bytes": 999}, "b": {"messages": 1, "bytes": 999}}
+    out = traffic_per_agent("s", traffic, seconds=10.0, decoders=decoders)
+    assert set(out) == {"a", "b"}  # the wildcard row is not an agent
     assert out["a"]["from_agent_bytes"] == 1000 and out["a"]["from_agent_bytes_per_s"] == 100.0
-    # Image queries go to the agent too; group decoders belong to no single agent.
-    assert out["a"]["to_agent"] == {"ack": {"messages": 3, "bytes": 30},
-                                    "image": {"messages": 1, "bytes": 10}}
-    assert out["b"]["from_agent"] == {"frames": {"messages": 1, "bytes": 50}}
+    assert out["a"]["from_agent"]["submap"] == {"messages": 1, "bytes": 900, "bytes_per_s": 90.0}
+    # Image queries go to the agent too; a group decoder reaches every agent present.
+    assert out["a"]["to_agent"] == {
+        "ack": {"messages": 3, "bytes": 30, "bytes_per_s": 3.0},
+        "image": {"messages": 1, "bytes": 10, "bytes_per_s": 1.0},
+        "group_decoder": {"messages": 1, "bytes": 999, "bytes_per_s": 99.9}}
+    assert out["b"]["from_agent"] == {"frames": {"messages": 1, "bytes": 50, "bytes_per_s": 5.0}}
+    assert out["b"]["to_agent_bytes"] == 999
+    assert traffic_per_group("s", traffic["sent"], 10.0) == {
+        "g": {"messages": 1, "bytes": 999, "bytes_per_s": 99.9}}
+
+
+def test_finalise_counts_traffic_per_concrete_key_and_decoders_per_agent(
+        tmp_path: Path) -> None:
+    node, agent_bus, _ = _setup(tmp_path, persist_every_s=0.0)
+    tokens = [agent_bus.declare_liveliness(keys.alive_agent(SESSION, a)) for a in ("a", "b")]
+    payload = protocol.encode(_keyframe("a", 0, 0))
+    agent_bus.publish(keys.agent_keyframe(SESSION, "a"), payload)
+    time.sleep(0.2)
+    node.poll()
+    tensors = {"w": np.ones((4, 4), np.float32)}
+    decoder = GroupDecoder(group_id="a", round=1, members=["a"], n_samples=5, tensors=tensors)
+    node.publish([Outgoing("a", decoder, scope="group")])
+    sent = len(protocol.encode(decoder))
+    node.finalise()
+    bus = json.loads((tmp_path / "metrics.json").read_text())["bus"]
+    assert bus["received_by_key"] == {keys.agent_keyframe(SESSION, "a"):
+                                      {"messages": 1, "bytes": len(payload)}}
+    a, b = bus["per_agent"]["a"], bus["per_agent"]["b"]
+    assert a["from_agent"]["keyframe"]["bytes"] == len(payload) == a["from_agent_bytes"]
+    assert a["from_agent"]["keyframe"]["bytes_per_s"] > 0
+    assert a["to_agent"]["group_decoder"]["bytes"] == sent
+    assert b["to_agent"]["group_decoder"]["bytes"] == sent  # not a member, but subscribed
+    assert bus["per_group"]["a"]["bytes"] == sent and bus["per_group"]["a"]["messages"] == 1
+    for token in tokens:
+        token.undeclare()
+    node.close()
+
+
+def test_a_join_and_a_leave_are_one_log_line_each(tmp_path: Path, caplog) -> None:
+    node, agent_bus, _ = _setup(tmp_path, persist_every_s=0.0)
+    caplog.set_level(logging.INFO, logger="cpslam.server")
+    token = agent_bus.declare_liveliness(keys.alive_agent(SESSION, "a"))
+    agent_bus.publish(keys.agent_keyframe(SESSION, "a"), protocol.encode(_keyframe("a", 0, 0)))
+    time.sleep(0.2)
+    node.poll()
+    token.undeclare()
+    time.sleep(0.2)
+    node.poll()
+    lines = [r.getMessage() for r in caplog.records if r.levelno >= logging.INFO]
+    assert [m for m in lines if m.startswith("agent a ")] == ["agent a joined", "agent a left"]
+    node.close()
 
 
 def test_subscription_wait_does_not_consume() -> None:

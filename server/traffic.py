@@ -1,0 +1,101 @@
+"""Traffic figures of a server run: bytes, messages and bytes per second per agent and per key.
+
+The bus counts subscriptions under the subscribed expression (``agent/*/*`` for everything the
+agents publish), so `KeyCounter` counts what the server takes off that queue under each
+concrete key, and `DecoderFanout` what each agent is sent on the group decoder keys. The
+functions here turn those counts and `Bus.stats()` into the ``bus`` section of the server's
+``metrics.json`` (documented in docs/daemons.md).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+
+from cpslam.protocol import keys
+
+__all__ = ["DecoderFanout", "KeyCounter", "traffic_per_agent", "traffic_per_group"]
+
+Table = dict[str, dict[str, int]]
+"""{key or agent: {"messages": int, "bytes": int}}"""
+
+
+class KeyCounter:
+    """Messages and bytes per key (one thread counts; `table` returns a copy)."""
+
+    def __init__(self) -> None:
+        self._rows: dict[str, list[int]] = {}
+
+    def add(self, key: str, nbytes: int) -> None:
+        row = self._rows.setdefault(key, [0, 0])
+        row[0] += 1
+        row[1] += int(nbytes)
+
+    def table(self) -> Table:
+        return {k: {"messages": m, "bytes": b} for k, (m, b) in self._rows.items()}
+
+
+class DecoderFanout(KeyCounter):
+    """Group decoder bytes per receiving agent.
+
+    Every agent subscribes to every group's decoder (``server/group/*/decoder``), so one
+    publication reaches each agent present, not only the group's members: each of them is
+    charged the whole message.
+    """
+
+    def delivered(self, recipients: Iterable[str], nbytes: int) -> None:
+        for agent in recipients:
+            self.add(agent, nbytes)
+
+
+def traffic_per_agent(session: str, traffic: Mapping[str, Mapping], seconds: float,
+                      decoders: Table | None = None) -> dict[str, dict]:
+    """Per agent: ``from_agent`` and ``to_agent`` tables of messages, bytes and bytes/s per
+    topic, their totals ``<direction>_bytes`` and ``<direction>_bytes_per_s``.
+
+    `traffic` is ``{"sent"|"received": {key: {"messages", "bytes"}}}``; keys are attributed with
+    `keys.key_subject` (wildcard expressions and keys of no agent are skipped). Keyframe images
+    count both ways under topic ``image`` (the request to the agent, the reply from it).
+    `decoders` (`DecoderFanout.table()`) adds topic ``group_decoder`` to ``to_agent``. Rates
+    are over `seconds` (the server's uptime).
+    """
+    out: dict[str, dict] = {}
+
+    def add(agent: str, direction: str, topic: str, row: Mapping) -> None:
+        entry = out.setdefault(agent, {"from_agent": {}, "to_agent": {}})
+        cell = entry[direction].setdefault(topic, {"messages": 0, "bytes": 0})
+        cell["messages"] += int(row.get("messages", 0))
+        cell["bytes"] += int(row.get("bytes", 0))
+
+    for direction, table in (("from_agent", traffic.get("received", {})),
+                             ("to_agent", traffic.get("sent", {}))):
+        for key, row in table.items():
+            subject = keys.key_subject(session, key)
+            if subject is not None and subject[0] == "agent":
+                add(subject[1], direction, subject[2], row)
+    for agent, row in (decoders or {}).items():
+        add(agent, "to_agent", "group_decoder", row)
+    per_s = 1.0 / max(seconds, 1e-9)
+    for entry in out.values():
+        for direction in ("from_agent", "to_agent"):
+            for cell in entry[direction].values():
+                cell["bytes_per_s"] = cell["bytes"] * per_s
+            total = sum(c["bytes"] for c in entry[direction].values())
+            entry[f"{direction}_bytes"] = total
+            entry[f"{direction}_bytes_per_s"] = total * per_s
+    return out
+
+
+def traffic_per_group(session: str, sent: Table, seconds: float) -> dict[str, dict]:
+    """Per group: messages, bytes and bytes/s the server published on its decoder key (once
+    per round; `traffic_per_agent` charges each receiving agent)."""
+    out: dict[str, dict] = {}
+    for key, row in sent.items():
+        subject = keys.key_subject(session, key)
+        if subject is None or subject[0] != "group":
+            continue
+        cell = out.setdefault(subject[1], {"messages": 0, "bytes": 0})
+        cell["messages"] += int(row.get("messages", 0))
+        cell["bytes"] += int(row.get("bytes", 0))
+    for cell in out.values():
+        cell["bytes_per_s"] = cell["bytes"] / max(seconds, 1e-9)
+    return out
