@@ -1,7 +1,9 @@
 """`cpslam dataset info`: what a sequence folder holds, as text or JSON.
 
 The lead's umbrella CLI registers `info` as a command; heavy imports stay inside functions so
-that `cpslam --help` does not pay for them.
+that `cpslam --help` does not pay for them. `FormatOpt` and `FramesOpt` are the options of
+every command that opens a sequence folder (also `cpslam eval ate`), so the flags read the
+same everywhere; both are passed on to `open_sequence` as they are.
 """
 
 from __future__ import annotations
@@ -15,17 +17,22 @@ import typer
 if TYPE_CHECKING:
     from cpslam.common.datasets.base import RGBDSequence
 
+FormatOpt = Annotated[
+    str | None,
+    typer.Option("--format", "-f", help="Dataset format: replica, tum, 7scenes or scannet "
+                 "(default: detect from the folder's layout)."),
+]
+FramesOpt = Annotated[
+    str | None,
+    typer.Option("--frames", help="Frame selection START:STOP[:STEP] of a dataset folder, "
+                 "e.g. 0:300 or ::2 (frames keep their own indices and timestamps)."),
+]
+
 
 def info(
     path: Annotated[Path, typer.Argument(help="Sequence folder.", show_default=False)],
-    format: Annotated[
-        str | None,
-        typer.Option("--format", "-f", help="replica, tum, 7scenes or scannet (default: detect)."),
-    ] = None,
-    frames: Annotated[
-        str | None,
-        typer.Option("--frames", help="Frame selection START:STOP[:STEP], e.g. 0:300 or ::2."),
-    ] = None,
+    format: FormatOpt = None,
+    frames: FramesOpt = None,
     samples: Annotated[
         int, typer.Option("--samples", min=1, help="Frames sampled for the depth statistics.")
     ] = 5,

@@ -12,8 +12,10 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from cpslam.common.datasets.cli import FormatOpt, FramesOpt
 from cpslam.common.eval.ate import DEFAULT_MAX_DT, AteResult, evaluate_ate
 from cpslam.common.eval.source import load_trajectory, locate_trajectory
+from cpslam.common.trajectory import Trajectory
 
 logger = logging.getLogger(__name__)
 
@@ -36,8 +38,8 @@ def ate(
         Path,
         typer.Option(
             "--est",
-            help="Estimate: TUM file, or a run folder with one trajectory.tum "
-            "(at the top or in agent_*/).",
+            help="Estimate: TUM file, run folder with one trajectory.tum (at the top or in "
+            "agent_*/) or dataset folder (its ground-truth poses).",
             show_default=False,
         ),
     ],
@@ -51,8 +53,12 @@ def ate(
     ] = AlignMode.origin,
     max_dt: Annotated[
         float,
-        typer.Option("--max-dt", min=0.0, help="Largest time difference of a pose pair [s]."),
+        typer.Option(
+            "--max-dt", min=0.0, help="Largest time difference of a pose pair, in seconds."
+        ),
     ] = DEFAULT_MAX_DT,
+    fmt: FormatOpt = None,
+    frames: FramesOpt = None,
     json_out: Annotated[
         Path | None, typer.Option("--json", help="Write the numbers to this JSON file.")
     ] = None,
@@ -60,12 +66,32 @@ def ate(
         Path | None, typer.Option("--plot", help="Write a PNG: top view and error over time.")
     ] = None,
 ) -> None:
-    """Absolute trajectory error (ATE) of an estimate against ground truth, in centimetres."""
+    """Absolute trajectory error (ATE) of an estimate against ground truth, in centimetres.
+
+    Poses are paired by timestamp. --format and --frames apply to whichever of --gt and
+    --est is a dataset folder (usually the ground truth); a selection keeps the sequence's
+    own timestamps, so it lines up with an estimate of the same frames.
+
+    Examples:
+
+      cpslam eval ate --gt runs/data/room/agent_0 --est runs/room
+
+      cpslam eval ate --gt ../shared/data/7scenes-kitchen-0-299 --frames 0:100 --est runs/kitchen
+
+      cpslam eval ate --gt groundtruth.tum --est runs/apt/agent_1/trajectory.tum --align sim3
+
+      cpslam eval ate --gt data/office --format tum --est runs/office --json ate.json --plot ate.png
+    """
     try:
-        gt_file = locate_trajectory(gt)[1]
-        est_file = locate_trajectory(est)[1]
-        gt_traj = load_trajectory(gt)
-        est_traj = load_trajectory(est)
+        gt_kind, gt_file = locate_trajectory(gt)
+        est_kind, est_file = locate_trajectory(est)
+        if (fmt is not None or frames is not None) and "dataset" not in (gt_kind, est_kind):
+            raise ValueError(
+                f"--format/--frames apply to dataset folders; {gt_file} and {est_file} are "
+                "TUM trajectory files"
+            )
+        gt_traj = _load(gt, gt_kind, fmt, frames)
+        est_traj = _load(est, est_kind, fmt, frames)
         result = evaluate_ate(
             gt_traj.stamps,
             gt_traj.poses,
@@ -95,6 +121,14 @@ def ate(
     except OSError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(code=2) from exc
+
+
+def _load(path: Path, kind: str, fmt: str | None, frames: str | None) -> Trajectory:
+    # Only a dataset folder takes the format and selection; load_trajectory refuses them for
+    # a TUM file, which is right when it is the only input but not next to a dataset.
+    if kind == "dataset":
+        return load_trajectory(path, fmt, frames)
+    return load_trajectory(path)
 
 
 def _print_table(result: AteResult, gt_file: Path, est_file: Path) -> None:

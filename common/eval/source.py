@@ -4,7 +4,8 @@
 - a folder holding ``trajectory.tum`` at its top, or exactly one ``agent_*/trajectory.tum``
   (a cpslam run); several agents' files are an error that lists them;
 - otherwise a dataset folder: its timestamps and ground-truth poses, read through
-  ``cpslam.common.datasets.open_sequence`` (images are not loaded).
+  ``cpslam.common.datasets.open_sequence`` (images are not loaded); a format and a frame
+  selection ``START:STOP[:STEP]`` may be given, as for every command that reads a sequence.
 """
 
 from __future__ import annotations
@@ -25,16 +26,29 @@ TRAJECTORY_NAME = "trajectory.tum"
 _GT_RIGID_TOL = 1e-2
 
 
-def load_trajectory(path: str | Path) -> Trajectory:
+def load_trajectory(
+    path: str | Path, fmt: str | None = None, frames: slice | str | None = None
+) -> Trajectory:
     """Trajectory from a TUM file, a run folder or a dataset folder (see module docstring).
 
+    ``fmt`` (a dataset format name; None detects it) and ``frames`` (a slice or
+    "START:STOP[:STEP]") apply to dataset folders only: selected frames keep their own
+    timestamps, so they still associate with the full estimate or ground truth.
+
     Raises FileNotFoundError when the path does not exist and ValueError, naming the path,
-    when it holds no usable trajectory.
+    when it holds no usable trajectory or when ``fmt``/``frames`` are given for a TUM file.
     """
     kind, resolved = locate_trajectory(path)
     if kind == "tum":
+        if fmt is not None or frames is not None:
+            # Refused rather than ignored: a selection that silently does nothing would give
+            # an ATE over other frames than the caller asked for.
+            raise ValueError(
+                f"{resolved}: a format or frame selection applies to dataset folders, "
+                "not to TUM trajectory files"
+            )
         return Trajectory(*read_tum(resolved))
-    stamps, poses = _dataset_trajectory(resolved)
+    stamps, poses = _dataset_trajectory(resolved, fmt, frames)
     if len(stamps) == 0:
         raise ValueError(f"{resolved}: dataset has no frames with ground-truth poses")
     try:
@@ -64,14 +78,18 @@ def locate_trajectory(path: str | Path) -> tuple[str, Path]:
     return "dataset", path
 
 
-def _dataset_trajectory(folder: Path) -> tuple[np.ndarray, np.ndarray]:
+def _dataset_trajectory(
+    folder: Path, fmt: str | None, frames: slice | str | None
+) -> tuple[np.ndarray, np.ndarray]:
     # Imported here: the dataset readers pull in image libraries that a TUM-only
     # evaluation does not need.
     from cpslam.common.datasets import open_sequence
 
     try:
-        sequence = open_sequence(folder)
+        sequence = open_sequence(folder, fmt=fmt, frames=frames)
     except (ValueError, FileNotFoundError) as exc:
+        if fmt is not None or frames is not None:
+            raise  # the caller meant a dataset: the loader's message says what is wrong
         raise ValueError(
             f"{folder}: neither a {TRAJECTORY_NAME} (at the top or in agent_*/) nor a readable "
             f"dataset folder ({exc})"

@@ -92,6 +92,79 @@ def test_cli_bad_tum_line_exits_2(tmp_path: Path, app: typer.Typer) -> None:
     assert "bad.tum" in result.output
 
 
+def make_replica(root: Path, n: int = 12) -> np.ndarray:
+    """A tiny Replica-layout folder (8x6 images, 30 Hz) whose traj.txt holds the returned
+    ground truth [n, 4, 4]."""
+    import cv2
+
+    xi = np.zeros((n, 6))
+    xi[:, 0] = np.linspace(0.0, 1.0, n)
+    xi[:, 2] = np.linspace(0.0, 0.5, n) ** 2
+    xi[:, 4] = np.linspace(0.0, 0.8, n)
+    poses = se3_exp(xi)
+    (root / "results").mkdir(parents=True)
+    for i in range(n):
+        rgb, depth = np.zeros((6, 8, 3), np.uint8), np.full((6, 8), 6553, np.uint16)
+        assert cv2.imwrite(str(root / "results" / f"frame{i:06d}.png"), rgb)
+        assert cv2.imwrite(str(root / "results" / f"depth{i:06d}.png"), depth)
+    (root / "traj.txt").write_text(
+        "".join(" ".join(f"{v:.17g}" for v in T.ravel()) + "\n" for T in poses)
+    )
+    (root / "camera.yaml").write_text("fx: 6.4\nfy: 6.4\ncx: 3.5\ncy: 2.5\nwidth: 8\nheight: 6\n")
+    return poses
+
+
+def test_cli_dataset_folder_with_frames_and_format(tmp_path: Path, app: typer.Typer) -> None:
+    gt = make_replica(tmp_path / "seq")
+    est = gt.copy()
+    est[:, :3, 3] += 0.01  # 1 cm off everywhere: the ATE with --align none is exactly 1 cm
+    write_tum(tmp_path / "est.tum", np.arange(len(gt)) / 30.0, est)
+    out = tmp_path / "ate.json"
+    base = ["ate", "--gt", str(tmp_path / "seq"), "--est", str(tmp_path / "est.tum"),
+            "--align", "none", "--json", str(out)]
+    result = CliRunner().invoke(app, base)
+    assert result.exit_code == 0, result.output
+    record = json.loads(out.read_text())
+    assert record["n_gt"] == 12 and record["n_pairs"] == 12
+    assert record["rmse_m"] == pytest.approx(0.01 * np.sqrt(3), abs=1e-9)
+    # a selection keeps the sequence's own timestamps, so it pairs with the full estimate
+    result = CliRunner().invoke(app, [*base, "--frames", "2:10:2", "--format", "replica"])
+    assert result.exit_code == 0, result.output
+    record = json.loads(out.read_text())
+    assert record["n_gt"] == 4 and record["n_pairs"] == 4 and record["n_est"] == 12
+    # the dataset may be the estimate's side as well
+    swapped = ["ate", "--gt", str(tmp_path / "est.tum"), "--est", str(tmp_path / "seq"),
+               "--align", "none", "--frames", ":5", "--json", str(out)]
+    result = CliRunner().invoke(app, swapped)
+    assert result.exit_code == 0, result.output
+    assert json.loads(out.read_text())["n_est"] == 5
+
+
+def test_cli_frames_and_format_errors_exit_2(tmp_path: Path, app: typer.Typer) -> None:
+    make_replica(tmp_path / "seq")
+    gt, run = make_pair(tmp_path)
+    seq = ["ate", "--gt", str(tmp_path / "seq"), "--est", str(run)]
+    result = CliRunner().invoke(app, [*seq, "--format", "tum"])  # not a TUM RGB-D layout
+    assert result.exit_code == 2 and "error" in result.output and "seq" in result.output
+    result = CliRunner().invoke(app, [*seq, "--format", "kitti"])
+    assert result.exit_code == 2 and "kitti" in result.output
+    result = CliRunner().invoke(app, [*seq, "--frames", "3-9"])
+    assert result.exit_code == 2 and "START:STOP" in result.output
+    result = CliRunner().invoke(app, [*seq, "--frames", "50:"])
+    assert result.exit_code == 2 and "select none" in result.output
+    tum_only = ["ate", "--gt", str(gt), "--est", str(run), "--frames", "0:10"]
+    result = CliRunner().invoke(app, tum_only)
+    assert result.exit_code == 2 and "dataset folders" in result.output
+
+
+def test_cli_help_names_inputs_and_units(app: typer.Typer) -> None:
+    text = " ".join(CliRunner().invoke(app, ["ate", "--help"]).output.replace("│", " ").split())
+    assert "dataset folder (its ground-truth poses)" in text
+    assert "pose pair, in seconds" in text  # "[s]" would have been swallowed by rich markup
+    assert "--frames" in text and "--format" in text
+    assert "cpslam eval ate --gt" in text
+
+
 def test_plot_single_and_joint(tmp_path: Path) -> None:
     import matplotlib.image
 
