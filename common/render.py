@@ -3,6 +3,10 @@
 The output folder is itself a sequence in the Replica layout (`results/`, `traj.txt`,
 `camera.yaml`), so `cpslam dataset info`, the mesh builder and the depth-L1 metric read it like
 any other data set.
+
+The map lives in the agent's world, its first camera. Poses from elsewhere (a data set's ground
+truth) live in another world; `relative_to_start` re-expresses them relative to their pose at
+the run's first frame, which is where the agent's world sits in theirs.
 """
 
 from __future__ import annotations
@@ -36,16 +40,22 @@ class RunModel:
     intrinsics: Intrinsics
 
 
-def load_run_model(run: Path, agent_id: int = 0, device: str = "cpu") -> RunModel:
-    """Rebuild the map and decoders of `run/agent_<id>/state.pt` using `run/config.yaml`."""
+def load_run_model(run: Path, agent_id: str = "0", device: str = "cpu") -> RunModel:
+    """Rebuild the map and decoders of `run/agent_<id>/state.pt` using `run/config.yaml`
+    (a networked agent writes its config as `run/agent_<id>/config.yaml`: used when the run
+    has none at its top). Agent ids are strings (``--agent-id robot-2`` writes
+    ``agent_robot-2/``)."""
     import torch
 
     from cpslam.common.camera import Intrinsics
     from cpslam.common.config import load_config_file
     from cpslam.common.field_config import decoders_from_config, point_map_from_config
 
+    agent_dir = run / f"agent_{agent_id}"
     config_path = run / "config.yaml"
-    state_path = run / f"agent_{agent_id}" / STATE_FILE
+    if not config_path.is_file() and (agent_dir / "config.yaml").is_file():
+        config_path = agent_dir / "config.yaml"
+    state_path = agent_dir / STATE_FILE
     for path in (config_path, state_path):
         if not path.is_file():
             raise FileNotFoundError(f"{path}: not found (is {run} a cpslam run folder?)")
@@ -54,12 +64,32 @@ def load_run_model(run: Path, agent_id: int = 0, device: str = "cpu") -> RunMode
     for key in ("point_map", "decoders", "intrinsics"):
         if key not in state:
             raise ValueError(f"{state_path}: missing {key!r}; not a cpslam agent state file")
-    point_map = point_map_from_config(cfg.field, agent_id, device)
+    # The map's agent key is local to the agent process (always 0); the state sets it anyway.
+    point_map = point_map_from_config(cfg.field, 0, device)
     point_map.load_state_dict(state["point_map"])
     decoders = decoders_from_config(cfg.field, cfg.run.seed).to(device)
     decoders.load_state_dict(state["decoders"])
     decoders.eval()
     return RunModel(cfg, point_map, decoders, Intrinsics.from_dict(state["intrinsics"]))
+
+
+def relative_to_start(stamps: np.ndarray, poses: np.ndarray, run_start: float | None,
+                      max_dt: float = 0.02) -> np.ndarray:
+    """``poses`` [N, 4, 4] re-expressed relative to the one at the run's first frame:
+    ``inv(T_w_start) @ T_w_cam``, the camera poses in the agent's world (its first camera).
+
+    ``run_start`` is the stamp of the run's first frame (its trajectory.tum); None takes the
+    first pose. Raises ValueError when no pose lies within ``max_dt`` seconds of it.
+    """
+    if run_start is None:
+        i = 0
+    else:
+        i = int(np.argmin(np.abs(stamps - run_start)))
+        if abs(stamps[i] - run_start) > max_dt:
+            raise ValueError(f"no pose within {max_dt} s of the run's first frame (stamp "
+                             f"{run_start:.6f}; nearest {stamps[i]:.6f}): --relative needs the "
+                             f"poses of the sequence the run processed")
+    return np.linalg.inv(poses[i])[None] @ poses
 
 
 def render_views(
@@ -111,10 +141,20 @@ def render(
     run: Annotated[Path, typer.Argument(help="Run folder (holds config.yaml and agent_<id>/).")],
     poses: Annotated[
         Path | None,
-        typer.Option("--poses", help="TUM file of T_world_cam to render (default: the run's "
-                     "own agent_<id>/trajectory.tum)."),
+        typer.Option("--poses", help="Poses T_world_cam to render: a TUM file, a run folder or a "
+                     "data set folder (its ground truth). Default: the run's own "
+                     "agent_<id>/trajectory.tum."),
     ] = None,
-    agent: Annotated[int, typer.Option("--agent", help="Which agent's map.")] = 0,
+    relative: Annotated[
+        bool,
+        typer.Option("--relative", help="Express the poses relative to their pose at the run's "
+                     "first frame (matched by timestamp): ground truth is in the data set's "
+                     "world, the map in the agent's (its first camera)."),
+    ] = False,
+    agent: Annotated[
+        str, typer.Option("--agent", help="Which agent's map: the id of agent_<id>/ (e.g. 0 "
+                          "or robot-2).")
+    ] = "0",
     out: Annotated[
         Path | None, typer.Option("--out", help="Output folder (default: RUN/agent_<id>/renders).")
     ] = None,
@@ -133,17 +173,25 @@ def render(
 
       cpslam render runs/room --every 10
 
-      cpslam render runs/room --poses runs/data/room/agent_0/gt.tum --out runs/room/gt_views
+      cpslam render runs/room --poses runs/data/room/agent_0 --relative --out runs/room/gt
+
+      cpslam render runs/office --agent robot-2 --every 10
     """
     from cpslam.common.device import resolve_device
-    from cpslam.common.trajectory import read_tum
+    from cpslam.common.eval.source import load_trajectory
+    from cpslam.protocol import ProtocolError, keys
 
     try:
+        keys.check_id(agent, "--agent")
         torch_device = resolve_device(device)
         model = load_run_model(run, agent, torch_device)
-        pose_file = poses or run / f"agent_{agent}" / "trajectory.tum"
-        _, T_world_cam = read_tum(pose_file)
-    except (FileNotFoundError, ValueError) as err:
+        own = run / f"agent_{agent}" / "trajectory.tum"
+        trajectory = load_trajectory(poses or own)
+        T_world_cam = trajectory.poses
+        if relative:
+            start = load_trajectory(own).stamps[0] if own.is_file() else None
+            T_world_cam = relative_to_start(trajectory.stamps, T_world_cam, start)
+    except (FileNotFoundError, ValueError, ProtocolError) as err:
         typer.echo(f"error: {err}", err=True)
         raise typer.Exit(2) from None
     T_world_cam = T_world_cam[::every]

@@ -66,6 +66,38 @@ def test_standalone_run_writes_everything_and_evaluates(room: Path, tmp_path: Pa
     assert (view.depth > 0).mean() > 0.3  # the map covers most of the first view
 
 
+def test_render_a_string_agent_id_from_ground_truth(room: Path, tmp_path: Path) -> None:
+    """`cpslam render --agent robot-2` finds agent_robot-2/; the --help example's form
+    (`--poses <dataset folder> --relative`) puts the ground truth into the agent's world."""
+    from cpslam.common.datasets import open_sequence
+    from cpslam.common.eval.source import load_trajectory
+
+    run = tmp_path / "run"
+    assert _agent("--seq", str(room), "--standalone", "--frames", "4:10", "--agent-id",
+                  "robot-2", "--out", str(run)).exit_code == 0
+    out = tmp_path / "gt_views"
+    result = runner.invoke(cpslam_app, ["render", str(run), "--agent", "robot-2", "--poses",
+                                        str(room), "--relative", "--every", "3", "--out",
+                                        str(out)])
+    assert result.exit_code == 0, result.output
+    truth = load_trajectory(room)
+    # The run started at frame 4: that frame's true pose is the agent's world.
+    expected = np.linalg.inv(truth.poses[4])[None] @ truth.poses[::3]
+    rendered = np.loadtxt(out / "traj.txt").reshape(-1, 4, 4)
+    np.testing.assert_allclose(rendered, expected, atol=1e-6)
+    view = open_sequence(out)[2]  # ground-truth frame 6, inside the mapped part
+    observed = open_sequence(room)[6].depth[::2, ::2]
+    both = (view.depth > 0) & (observed > 0)
+    assert both.mean() > 0.3
+    assert np.median(np.abs(view.depth[both] - observed[both])) < 0.1  # tiny preset's map
+    # The run's own trajectory, and a bad id, as before.
+    assert runner.invoke(cpslam_app, ["render", str(run), "--agent", "robot-2", "--every",
+                                      "6"]).exit_code == 0
+    assert (run / "agent_robot-2" / "renders" / "traj.txt").is_file()
+    result = runner.invoke(cpslam_app, ["render", str(run), "--agent", "robot/2"])
+    assert result.exit_code == 2 and "--agent" in result.output
+
+
 def test_resume_continues_where_the_run_stopped(room: Path, tmp_path: Path) -> None:
     first = tmp_path / "a"
     assert _agent("--seq", str(room), "--standalone", "--frames", "0:8",
