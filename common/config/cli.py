@@ -72,7 +72,14 @@ def show(
 
 
 def presets() -> None:
-    """List the presets and what each changes relative to the paper's defaults."""
+    """List the presets and what each changes relative to the paper's defaults.
+
+    Examples:
+
+      cpslam config presets
+
+      cpslam config presets > presets.yaml
+    """
     from cpslam.common.config import available_presets, preset_text
 
     for name in available_presets():

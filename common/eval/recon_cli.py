@@ -81,7 +81,16 @@ def recon(
         Path | None, typer.Option("--json", help="Write the numbers to this JSON file.")
     ] = None,
 ) -> None:
-    """Mesh accuracy, completion (cm) and completion ratio (%) against ground truth."""
+    """Mesh accuracy, completion (cm) and completion ratio (%) against ground truth.
+
+    Examples:
+
+      cpslam eval recon --gt data/synth/mesh.ply --est runs/x/mesh.ply
+
+      cpslam eval recon --gt data/synth/mesh.ply --est runs/x/mesh.ply --cull-to data/synth/agent_0
+
+      cpslam eval recon --gt gt.ply --est runs/x/mesh.ply --method surface --json recon.json
+    """
     from cpslam.common.eval.recon import evaluate_recon
     from cpslam.common.mesh import read_mesh
 

@@ -34,7 +34,13 @@ def synth(
     Writes OUT/agent_<i>/ (results/frame*.png, results/depth*.png, traj.txt, camera.yaml)
     and OUT/mesh.ply, OUT/scene.json. Motion: at most 1 cm and 1 degree per frame.
 
-    Example: cpslam dataset synth --scene apartment --agents 2 --out data/apt2
+    Examples:
+
+      cpslam dataset synth --scene apartment --agents 2 --out data/apt2
+
+      cpslam dataset synth --scene room --loop --frames 300 --out runs/data/room
+
+      cpslam dataset synth --frames 60 --width 160 --height 120 --noise --out data/noisy
     """
     from cpslam.common.synth.writer import generate
 

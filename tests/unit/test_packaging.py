@@ -58,6 +58,56 @@ def test_cli_help_and_version() -> None:
         assert result.exit_code == 0, (sub, result.output)
 
 
+def _scripts():
+    from cpslam.agent.cli import app as agent_app
+    from cpslam.cli import app
+    from cpslam.server.cli import app as server_app
+
+    return {"cpslam": app, "cpslam-agent": agent_app, "cpslam-server": server_app}
+
+
+def _leaf_commands(command, path: list[str]):
+    """(words after the script name, click command) of every runnable command."""
+    subs = getattr(command, "commands", None)
+    if not subs:
+        yield path, command
+        return
+    for name, sub in sorted(subs.items()):
+        yield from _leaf_commands(sub, [*path, name])
+
+
+def test_every_command_help_has_examples() -> None:
+    # README: "Every command has --help with examples". Found by walking the command tree, so
+    # a new command is held to it without being listed here.
+    import typer
+
+    runner = CliRunner()
+    seen = []
+    for script, app in _scripts().items():
+        for words, _ in _leaf_commands(typer.main.get_command(app), []):
+            result = runner.invoke(app, [*words, "--help"])
+            assert result.exit_code == 0, (script, words, result.output)
+            full = " ".join([script, *words])
+            lines = [line.strip(" │") for line in result.output.splitlines()]
+            assert "Example" in result.output and any(
+                line.startswith(full + " ") or line == full for line in lines
+            ), f"`{full} --help` shows no example line starting with `{full}`"
+            seen.append(full)
+    assert {"cpslam eval ate", "cpslam eval recon", "cpslam config presets"} <= set(seen)
+
+
+def test_help_texts_hold_no_rich_markup() -> None:
+    # Typer renders help as rich markup: "[s]" or "[default]" in a help text vanishes.
+    import typer
+    from rich.text import Text
+
+    for script, app in _scripts().items():
+        for words, command in _leaf_commands(typer.main.get_command(app), []):
+            texts = [command.help or ""] + [getattr(p, "help", None) or "" for p in command.params]
+            for text in texts:
+                assert Text.from_markup(text).plain == text, (script, words, text)
+
+
 def test_test_module_names_are_unique() -> None:
     # The test folders are not packages (pytest's default "prepend" import mode): two test
     # files with one basename make collection fail with "import file mismatch".
