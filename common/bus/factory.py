@@ -30,14 +30,17 @@ def bus_from_config(
     Unset mode/listen/connect take the role's defaults: the server is a router listening on
     tcp/0.0.0.0:7447, an agent a client connecting to tcp/127.0.0.1:7447. `listen` is ignored
     in client mode; a server with `connect` set also reaches an existing Zenoh router.
+    ``max_message_mb`` bounds the payloads of either bus; ``queue_size`` is the nodes' to use
+    when they subscribe, ``session`` their key prefix.
     """
     if role not in _ROLE_DEFAULTS:
         raise ValueError(f"bus_from_config: role must be 'server' or 'agent', got {role!r}")
+    max_payload = int(transport.max_message_mb * 2**20)
     if transport.backend == "memory":
         if network is None:
             raise ValueError("transport.backend 'memory' needs the InMemoryNetwork shared by "
                              "every bus of the process")
-        return InMemoryBus(network)
+        return InMemoryBus(network, max_payload_bytes=max_payload)
     defaults = _ROLE_DEFAULTS[role]
     mode = transport.mode or defaults["mode"]
     # A client never listens, so one config file with `listen` set serves both daemons.
@@ -51,4 +54,5 @@ def bus_from_config(
         lease_s=transport.lease_s,
         multicast_scouting=transport.multicast_scouting,
         open_timeout_s=transport.open_timeout_s,
+        max_payload_bytes=max_payload,
     )

@@ -124,9 +124,23 @@ def _as_bytes(payload: object, what: str) -> bytes:
 
 
 class Bus(ABC):
-    """A session on the message bus. Thread-safe; use as a context manager or call `close()`."""
+    """A session on the message bus. Thread-safe; use as a context manager or call `close()`.
 
-    def __init__(self) -> None:
+    Args:
+        close_timeout_s: `close()` returns within this long, whatever hangs (the transport's
+            own close and busy subscription callbacks share the one deadline).
+        max_payload_bytes: larger payloads are refused by `publish` (`ValueError`) and
+            dropped on receive (counted in `stats()["oversized"]`, logged); None: no limit.
+    """
+
+    def __init__(self, close_timeout_s: float = 5.0,
+                 max_payload_bytes: int | None = None) -> None:
+        if close_timeout_s <= 0:
+            raise ValueError(f"close_timeout_s must be > 0, got {close_timeout_s}")
+        if max_payload_bytes is not None and max_payload_bytes <= 0:
+            raise ValueError(f"max_payload_bytes must be > 0, got {max_payload_bytes}")
+        self.close_timeout_s = float(close_timeout_s)
+        self.max_payload_bytes = max_payload_bytes
         self._lock = threading.RLock()
         self._closing = False
         self._traffic = _Traffic()
@@ -136,6 +150,7 @@ class Bus(ABC):
         self._watchers: set[LivelinessWatcher] = set()
         self._sub_undeclare: dict[Subscription, Callable[[], None]] = {}
         self._dropped_by_closed: dict[str, int] = {}
+        self._dropped_oversized: dict[str, int] = {}
 
     # -- public interface ----------------------------------------------------------------
 
@@ -143,6 +158,9 @@ class Bus(ABC):
         """Send `payload` to every subscription whose key expression matches `key` (concrete)."""
         validate_key(key, "publish key")
         data = _as_bytes(payload, "payload")
+        if self.max_payload_bytes is not None and len(data) > self.max_payload_bytes:
+            raise ValueError(f"publish on {key!r}: {len(data)} bytes exceed the bus limit of "
+                             f"{self.max_payload_bytes} (transport.max_message_mb)")
         self._check_open("publish")
         self._transport_publish(key, data)
         self._traffic.sent(key, len(data))
@@ -252,12 +270,14 @@ class Bus(ABC):
         return watcher
 
     def stats(self) -> dict[str, dict]:
-        """{"sent"|"received": {key: {"messages", "bytes"}}, "dropped": {key_expr: count}}."""
+        """{"sent"|"received": {key: {"messages", "bytes"}}, "dropped": {key_expr: count}
+        (queue overflows), "oversized": {key: count} (over `max_payload_bytes`)}."""
         out: dict[str, dict] = self._traffic.snapshot()
         with self._lock:
             dropped = dict(self._dropped_by_closed)
             for sub in self._subscriptions:
                 dropped[sub.key_expr] = dropped.get(sub.key_expr, 0) + sub.dropped
+            out["oversized"] = dict(self._dropped_oversized)
         out["dropped"] = dropped
         return out
 
@@ -268,24 +288,29 @@ class Bus(ABC):
     def close(self) -> None:
         """Withdraw everything this session declared and release the transport.
 
-        Idempotent, and returns within a bounded time even when the other side is gone.
+        Idempotent, and returns within `close_timeout_s` even when the other side is gone or
+        subscription callbacks hang: everything is signalled first, then the transport and
+        the callback workers are waited for against one shared deadline.
         """
+        deadline = time.monotonic() + self.close_timeout_s
         with self._lock:
             if self._closing:
                 return
             self._closing = True
-            handles = [
-                *self._subscriptions,
-                *self._queryables,
-                *self._watchers,
-            ]
+            subscriptions = list(self._subscriptions)
+            handles = [*self._queryables, *self._watchers]
             tokens = list(self._tokens)
         # Handles only flip their state here: the transport tears its side down in one go.
+        for sub in subscriptions:
+            sub.close(timeout=0)
         for handle in handles:
             handle.close()
         for token in tokens:
             token.undeclare()
-        self._transport_close()
+        # Transport first: a callback blocked in a publish is released when the session goes.
+        self._transport_close(deadline)
+        for sub in subscriptions:
+            sub.join(deadline)
 
     def __enter__(self) -> Bus:
         return self
@@ -324,8 +349,9 @@ class Bus(ABC):
         """Call `watcher.joined/left(key)` for current and future tokens."""
 
     @abstractmethod
-    def _transport_close(self) -> None:
-        """Drop every declaration of this session and release it, in bounded time."""
+    def _transport_close(self, deadline: float) -> None:
+        """Drop every declaration of this session and release it; return by `deadline`
+        (`time.monotonic()`), abandoning what is not done by then."""
 
     # -- helpers -------------------------------------------------------------------------
 
@@ -350,13 +376,25 @@ class Bus(ABC):
     def _make_receiver(self, sub: Subscription) -> Callable[[str, bytes], None]:
         traffic = self._traffic
 
+        limit = self.max_payload_bytes
+
         def receive(key: str, payload: bytes) -> None:
             if sub.closed:
                 return
             traffic.received(sub.key_expr, len(payload))
+            if limit is not None and len(payload) > limit:
+                self._oversized(key, len(payload))
+                return
             sub.deliver(Sample(key, payload, time.time()))
 
         return receive
+
+    def _oversized(self, key: str, nbytes: int) -> None:
+        with self._lock:
+            count = self._dropped_oversized[key] = self._dropped_oversized.get(key, 0) + 1
+        if count == 1 or count % 100 == 0:  # a flood must not become a flood of logs
+            logger.warning("dropped a %d-byte message on %r: over the bus limit of %d bytes "
+                           "(%d so far)", nbytes, key, self.max_payload_bytes, count)
 
     def _forget_subscription(self, sub: Subscription) -> None:
         with self._lock:

@@ -164,10 +164,12 @@ def _deliver_all(targets: list[Receive], key: str, payload: bytes) -> None:
 
 
 class InMemoryBus(Bus):
-    """One session on an `InMemoryNetwork` (a private network when none is given)."""
+    """One session on an `InMemoryNetwork` (a private network when none is given); the other
+    arguments are `Bus`'s."""
 
-    def __init__(self, network: InMemoryNetwork | None = None) -> None:
-        super().__init__()
+    def __init__(self, network: InMemoryNetwork | None = None, close_timeout_s: float = 5.0,
+                 max_payload_bytes: int | None = None) -> None:
+        super().__init__(close_timeout_s, max_payload_bytes)
         self.network = network if network is not None else InMemoryNetwork()
         self._session = self.network.attach()
 
@@ -224,5 +226,5 @@ class InMemoryBus(Bus):
         entry = self.network.add_watcher(self._session, watcher)
         return lambda: self.network.remove(entry)
 
-    def _transport_close(self) -> None:
-        self.network.detach(self._session)
+    def _transport_close(self, deadline: float) -> None:
+        self.network.detach(self._session)  # immediate: nothing here can hang

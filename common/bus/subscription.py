@@ -150,10 +150,12 @@ class Subscription:
                 total,
             )
 
-    def close(self) -> None:
+    def close(self, timeout: float = 5.0) -> None:
         """Stop receiving and discard what is still queued; wakes waiting consumers.
 
-        Idempotent; waits (bounded) for a running callback to finish.
+        Idempotent; waits up to `timeout` s for a running callback to finish (0: not at all;
+        `Bus.close` signals every subscription first and then joins them against one
+        deadline, so N busy callbacks do not cost N timeouts).
         """
         with self._cond:
             if self._closed:
@@ -163,11 +165,20 @@ class Subscription:
             self._cond.notify_all()
         if self._on_close is not None:
             self._on_close(self)
+        if timeout > 0:
+            self.join(time.monotonic() + timeout)
+
+    def join(self, deadline: float) -> bool:
+        """Wait until the callback worker has ended or `deadline` (`time.monotonic()`) has
+        passed; True when it ended (or there is none). Logs a callback still running."""
         worker = self._worker
-        if worker is not None and worker is not threading.current_thread():
-            worker.join(timeout=5.0)
-            if worker.is_alive():
-                logger.warning("callback of subscriber on %r still running at close", self.key_expr)
+        if worker is None or worker is threading.current_thread():
+            return True
+        worker.join(timeout=max(deadline - time.monotonic(), 0.0))
+        if worker.is_alive():
+            logger.warning("callback of subscriber on %r still running at close", self.key_expr)
+            return False
+        return True
 
     def __enter__(self) -> Subscription:
         return self

@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import logging
 import threading
+import time
 from collections.abc import Callable, Sequence
 
 import zenoh
@@ -106,7 +107,10 @@ class ZenohBus(Bus):
         block_on_congestion: block the publisher while Zenoh's send queue is full (reliable:
             map deltas must not vanish) instead of dropping the message. Only a peer that
             stops reading its socket can cause that, and at most until its lease expires.
-        close_timeout_s: `close()` gives up waiting for Zenoh after this long.
+        close_timeout_s: `close()` returns within this long: Zenoh's own close (which can
+            wait on a vanished peer) and busy subscription callbacks share the deadline.
+        max_payload_bytes: larger payloads are refused on publish and dropped on receive
+            (see `Bus`); None: no limit.
     """
 
     def __init__(
@@ -120,15 +124,15 @@ class ZenohBus(Bus):
         open_timeout_s: float = 5.0,
         block_on_congestion: bool = True,
         close_timeout_s: float = 2.0,
+        max_payload_bytes: int | None = None,
     ) -> None:
-        super().__init__()
+        super().__init__(close_timeout_s, max_payload_bytes)
         config = zenoh_config(
             mode, listen, connect, shared_memory, lease_s, multicast_scouting, open_timeout_s
         )
         self.mode = mode
         self.listen = list(listen)
         self.connect = list(connect)
-        self.close_timeout_s = close_timeout_s
         self._congestion = (
             zenoh.CongestionControl.BLOCK if block_on_congestion else zenoh.CongestionControl.DROP
         )
@@ -256,7 +260,7 @@ class ZenohBus(Bus):
         )
         return subscriber.undeclare
 
-    def _transport_close(self) -> None:
+    def _transport_close(self, deadline: float) -> None:
         session = self._session
         done = threading.Event()
 
@@ -270,7 +274,7 @@ class ZenohBus(Bus):
 
         # Zenoh's close can wait on a vanished peer; never let that hang a daemon's shutdown.
         threading.Thread(target=close, name="zenoh-close", daemon=True).start()
-        if not done.wait(self.close_timeout_s):
+        if not done.wait(max(deadline - time.monotonic(), 0.0)):
             logger.warning(
                 "zenoh session %s did not close within %.1f s; abandoning it",
                 self.zid,

@@ -1,9 +1,11 @@
-"""The bounded subscription queue on its own: drop-oldest, rate-limited warnings, close."""
+"""The bounded subscription queue on its own: drop-oldest, rate-limited warnings, close
+(alone, and all of a bus's subscriptions against one deadline)."""
 
 from __future__ import annotations
 
 import logging
 import threading
+import time
 
 import pytest
 
@@ -75,3 +77,55 @@ def test_close_from_inside_callback_does_not_deadlock() -> None:
 def test_queue_size_must_be_positive() -> None:
     with pytest.raises(ValueError, match="queue_size"):
         Subscription("k", queue_size=0)
+
+
+def test_close_without_wait_returns_at_once_and_join_waits_for_the_worker() -> None:
+    release, started = threading.Event(), threading.Event()
+
+    def busy(_s: Sample) -> None:
+        started.set()
+        release.wait(10.0)
+
+    sub = Subscription("k/*", callback=busy)
+    sub.deliver(sample(1))
+    assert started.wait(2.0)
+    t0 = time.monotonic()
+    sub.close(timeout=0)
+    assert time.monotonic() - t0 < 0.1 and sub.closed
+    assert sub.join(time.monotonic() + 0.05) is False  # still busy
+    release.set()
+    assert sub.join(time.monotonic() + 2.0) is True
+
+
+def test_bus_close_joins_hung_callbacks_against_one_deadline(caplog) -> None:
+    from cpslam.common.bus import InMemoryBus
+
+    release = threading.Event()
+    running = threading.Semaphore(0)
+
+    def hung(_s: Sample) -> None:
+        running.release()
+        release.wait(30.0)
+
+    bus = InMemoryBus(close_timeout_s=0.5)
+    n = 4
+    for i in range(n):
+        bus.subscribe(f"t/{i}", callback=hung)
+        bus.publish(f"t/{i}", b"x")
+    for _ in range(n):
+        assert running.acquire(timeout=2.0)
+    t0 = time.monotonic()
+    with caplog.at_level(logging.WARNING):
+        bus.close()
+    elapsed = time.monotonic() - t0
+    release.set()
+    # One shared 0.5 s deadline, not 0.5 s (or the old 5 s) per hung callback.
+    assert 0.4 < elapsed < 1.0, elapsed
+    assert len([r for r in caplog.records if "still running at close" in r.getMessage()]) == n
+
+
+def test_close_timeout_must_be_positive() -> None:
+    from cpslam.common.bus import InMemoryBus
+
+    with pytest.raises(ValueError, match="close_timeout_s"):
+        InMemoryBus(close_timeout_s=0)
