@@ -67,11 +67,13 @@ def agent(
     """Track the camera of one RGB-D sequence, build its neural point map, and (unless
     --standalone) stream it to a cpslam-server that merges it with other agents' maps.
 
-    Writes RUN/config.yaml and RUN/agent_<id>/: trajectory.tum (every frame, in the agent's
-    working frame), map.ply, state.pt (reload with `cpslam render` or `--resume`) and
-    metrics.json (with bytes sent per key expression when networked). Ctrl-C stops the run and
-    saves what exists. Networked: waits for the server, resends what was not acknowledged after
-    a server restart, exits 0 once everything is acknowledged (3: no server, 4: unacknowledged).
+    Writes RUN/agent_<id>/: trajectory.tum (every frame, in the agent's working frame),
+    map.ply, state.pt (reload with `cpslam render` or `--resume`) and metrics.json (with bytes
+    sent per key expression when networked). The effective configuration goes to
+    RUN/config.yaml with --standalone, and to RUN/agent_<id>/config.yaml (next to agent.log)
+    when networked, where agents and the server may share RUN. Ctrl-C stops the run and saves
+    what exists. Networked: waits for the server, resends what was not acknowledged after a
+    server restart, exits 0 once everything is acknowledged (3: no server, 4: unacknowledged).
 
     Examples:
 
