@@ -10,7 +10,8 @@
 3. Progress: the server's status query (frames, keyframes, groups, loops) once a second.
 4. When every agent exited 0, a ``Control(finalise)`` message asks the server for the final
    pose graph, refinement and outputs; it exits 0.
-5. `cpslam.report`: table, plots, mesh; the list of outputs.
+5. `cpslam.report`: tables (results; traffic per agent and key), peak memory of every
+   process, plots, mesh; the list of outputs.
 
 A child that dies (an agent with a non-zero code, the server at all before it was asked to
 finish) stops the others and is named with its log file. Ctrl-C sends SIGINT once to every
@@ -198,7 +199,8 @@ def demo(
     Generates (once, cached in --data-dir) the scene, starts cpslam-server on a free
     127.0.0.1 port and one cpslam-agent per agent, shows their progress, finalises the
     server and prints a table (per-agent and global ATE, loops, merge time, map size, bytes
-    sent per agent). Outputs in --out: trajectories/, fused_map.ply, mesh.ply,
+    sent per agent), the traffic per agent and key expression (MB, kB/s) and the peak memory
+    of each process. Outputs in --out: trajectories/, fused_map.ply, mesh.ply,
     pose_graph.g2o, metrics.json, report.json, plots/*.png, logs/.
 
     Examples:
@@ -267,6 +269,9 @@ def demo(
     if previous is not None:
         signal.signal(signal.SIGTERM, previous)
     info["wall_s"] = time.monotonic() - t0
+    from cpslam.common.rundir import peak_rss_mb
+
+    info["memory_mb"] = {"demo": peak_rss_mb()}  # the report adds the server and agents
     _write_marker(out, info)
     if code:
         raise typer.Exit(code)
@@ -381,9 +386,10 @@ def _report(out: Path, info: dict, mesh: bool, show: bool) -> None:
 
     t = time.monotonic()
     seqs = {a: Path(p) for a, p in info["sequences"].items()}
-    report = build_report(out, seqs, mesh=mesh, show_progress=show)
+    report = build_report(out, seqs, mesh=mesh, show_progress=show, process="demo")
     info["report_s"] = time.monotonic() - t
     info["wall_s"] += info["report_s"]
+    info["memory_mb"] = report["memory_mb"]
     _write_marker(out, info)
     console = Console()
     print_report(report, console, title=f"cpslam demo: {info['agents']} agents, preset "

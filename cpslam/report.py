@@ -1,4 +1,4 @@
-"""The end-of-run report of a collaborative run folder: table, plots and mesh.
+"""The end-of-run report of a collaborative run folder: tables, peak memory, plots and mesh.
 
 Works on any folder the server wrote (`cpslam demo`, `cpslam-server`, `cpslam run`): it reads
 ``metrics.json``, ``trajectories/agent_<id>_{local,global}.tum``, ``agent_<id>/metrics.json``,
@@ -36,15 +36,21 @@ PLOTS = ("trajectories_global.png", "trajectories_local.png")
 
 
 def build_report(run: Path, sequences: dict[str, Path] | None = None, mesh: bool = True,
-                 max_views: int = 40, show_progress: bool = False) -> dict[str, Any]:
+                 max_views: int = 40, show_progress: bool = False,
+                 process: str = "report") -> dict[str, Any]:
     """Numbers, plots (RUN/plots/) and mesh (RUN/mesh.ply) of a finished run; writes
-    RUN/report.json and returns its content."""
+    RUN/report.json and returns its content.
+
+    Besides the table: ``traffic`` (the server's messages, bytes and bytes/s per agent,
+    direction and topic, and per group decoder key) and ``memory_mb`` (peak resident memory
+    of the server, of each agent and of this process, named `process`)."""
     run = Path(run)
     metrics = _read_json(run / "metrics.json")
     if metrics is None:
         raise FileNotFoundError(f"{run}/metrics.json: not found (did the server finalise?)")
     ids = _agent_ids(run)
     report: dict[str, Any] = {"run": str(run), "agents": {}, "all": {}, "notes": []}
+    memory: dict[str, float | None] = {"server": metrics.get("process", {}).get("peak_rss_mb")}
     est = {a: {k: _read_tum(run / "trajectories" / f"agent_{a}_{k}.tum")
                for k in ("local", "global")} for a in ids}
     loops = metrics.get("loops", {})
@@ -56,6 +62,7 @@ def build_report(run: Path, sequences: dict[str, Path] | None = None, mesh: bool
         involved = [lp for lp in loops.get("list", []) if a in (lp.get("agent_a"),
                                                                 lp.get("agent_b"))]
         bus = per_agent_bus.get(a, {})
+        memory[f"agent_{a}"] = own.get("peak_cpu_memory_mb")
         report["agents"][a] = {
             "frames": len(est[a]["global"][0]) if est[a]["global"] else 0,
             "group": info.get("group"), "merged": bool(info.get("merged")),
@@ -78,6 +85,7 @@ def build_report(run: Path, sequences: dict[str, Path] | None = None, mesh: bool
         "sent_bytes": _total(r["sent_bytes"] for r in report["agents"].values()),
         "received_bytes": _total(r["received_bytes"] for r in report["agents"].values()),
     }
+    report["traffic"] = _traffic(metrics)
     results = _evaluate(report, est, sequences or {})
     if results:
         report["plots"] = [str(p) for p in write_plots(run / "plots", *results)]
@@ -87,8 +95,10 @@ def build_report(run: Path, sequences: dict[str, Path] | None = None, mesh: bool
         except (FileNotFoundError, ValueError, KeyError) as err:
             report["mesh"] = {"skipped": str(err)}
             report["notes"].append(f"mesh skipped: {err}")
-    from cpslam.common.rundir import write_json
+    from cpslam.common.rundir import peak_rss_mb, write_json
 
+    memory[process] = peak_rss_mb()  # after the mesh: it is what this process costs most
+    report["memory_mb"] = memory
     write_json(run / "report.json", report)
     return report
 
@@ -203,8 +213,51 @@ def print_report(report: dict[str, Any], console: Any = None, title: str | None 
     console.print(table)
     console.print(f"{t['groups']} group(s) at the end; fused map of group {t['main_group']}: "
                   f"{_num(t['fused_points'], '{:d}')} points")
+    if report.get("traffic", {}).get("agents"):
+        console.print(_traffic_table(report["traffic"]))
+    memory = report.get("memory_mb", {})
+    if memory:
+        console.print("peak memory (MB): " + ", ".join(
+            f"{name.replace('_', ' ')} {_num(mb, '{:.0f}')}" for name, mb in memory.items()))
     for note in report.get("notes", []):
         console.print(f"note: {note}")
+
+
+def _traffic(metrics: dict) -> dict[str, Any]:
+    """Per agent and direction: {topic: {messages, bytes, bytes_per_s}}; per group the
+    decoders published; the server's uptime the rates are over."""
+    bus = metrics.get("bus", {})
+    agents = {a: {d: dict(entry.get(d, {})) for d in ("from_agent", "to_agent")}
+              for a, entry in bus.get("per_agent", {}).items()}
+    return {"agents": agents, "groups": bus.get("per_group", {}),
+            "seconds": metrics.get("process", {}).get("uptime_s")}
+
+
+def _traffic_table(traffic: dict[str, Any]) -> Any:
+    from rich import box
+    from rich.table import Table
+
+    table = Table(box=box.SIMPLE_HEAD, pad_edge=False, padding=(0, 1, 0, 0),
+                  title="traffic per agent and key expression (server's counters)",
+                  caption="to server: agent/<id>/<topic> (image: keyframe image replies); "
+                          "from server: server/agent/<id>/<topic>, image requests, every "
+                          "group's decoder; kB/s over the server's uptime")
+    for col in ("agent", "direction", "topic", "messages", "MB", "kB/s"):
+        table.add_column(col, justify="left" if col in ("agent", "direction", "topic")
+                         else "right", no_wrap=True)
+    for a, entry in traffic["agents"].items():
+        for direction, label in (("from_agent", "to server"), ("to_agent", "from server")):
+            for topic, cell in sorted(entry.get(direction, {}).items()):
+                rate = cell.get("bytes_per_s")
+                table.add_row(a, label, topic, str(cell.get("messages", 0)),
+                              _mb(cell.get("bytes")), _num(rate and rate / 1e3, "{:.2f}"))
+    if traffic.get("groups"):
+        table.add_section()
+        for g, cell in traffic["groups"].items():
+            rate = cell.get("bytes_per_s")
+            table.add_row(f"group {g}", "published", "decoder", str(cell.get("messages", 0)),
+                          _mb(cell.get("bytes")), _num(rate and rate / 1e3, "{:.2f}"))
+    return table
 
 
 def _evaluate(report: dict, est: dict, sequences: dict[str, Path]) -> tuple | None:

@@ -125,3 +125,34 @@ def test_cli_refuses_bad_arguments_before_any_work(tmp_path: Path) -> None:
                                  "--data-dir", str(tmp_path / "data")])
     assert result.exit_code == 2 and "not an earlier demo" in result.output
     assert not (tmp_path / "data").exists()
+
+
+def test_report_step_shows_traffic_and_memory_of_every_process(tmp_path: Path,
+                                                               capsys) -> None:
+    import json
+
+    import numpy as np
+
+    from cpslam.common.trajectory import write_tum
+    from cpslam.demo import _report
+
+    run = tmp_path / "demo"
+    poses = np.repeat(np.eye(4)[None], 3, axis=0)
+    write_tum(run / "trajectories" / "agent_0_global.tum", np.arange(3.0), poses)
+    (run / "agent_0").mkdir()
+    (run / "agent_0" / "metrics.json").write_text(json.dumps({"peak_cpu_memory_mb": 321.0}))
+    cell = {"messages": 4, "bytes": 4_000_000, "bytes_per_s": 2_000_000.0}
+    (run / "metrics.json").write_text(json.dumps({
+        "bus": {"per_agent": {"0": {"from_agent": {"submap": cell}, "to_agent": {},
+                                    "from_agent_bytes": 4_000_000, "to_agent_bytes": 0}}},
+        "process": {"peak_rss_mb": 654.0, "uptime_s": 2.0}}))
+    info = {"agents": 1, "preset": "tiny", "frames": 3, "wall_s": 1.0,
+            "sequences": {"0": str(tmp_path / "no-ground-truth")}}
+    _report(run, info, mesh=False, show=False)
+    marker = json.loads((run / MARKER).read_text())
+    memory = marker["memory_mb"]
+    assert memory["server"] == 654.0 and memory["agent_0"] == 321.0 and memory["demo"] > 10
+    assert json.loads((run / "report.json").read_text())["memory_mb"] == memory
+    out = capsys.readouterr().out
+    assert "submap" in out and "2000.00" in out and "4.00" in out  # kB/s and MB
+    assert "peak memory (MB): server 654, agent 0 321, demo" in out

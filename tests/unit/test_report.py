@@ -51,7 +51,7 @@ def run(tmp_path: Path) -> tuple[Path, dict[str, Path]]:
         write_tum(run / "trajectories" / f"agent_{a}_local.tum", stamps, local)
         (run / f"agent_{a}").mkdir(parents=True)
         (run / f"agent_{a}" / "metrics.json").write_text(json.dumps({
-            "points": 1000 + int(a), "bus": {"sent": {
+            "points": 1000 + int(a), "peak_cpu_memory_mb": 600.0 + int(a), "bus": {"sent": {
                 f"cpslam/demo/agent/{a}/keyframe": {"messages": 3, "bytes": 2_000_000},
                 f"cpslam/demo/agent/{a}/frames": {"messages": 5, "bytes": 500_000}}}}))
     loops = [{"agent_a": "0", "agent_b": "0", "accepted": True},
@@ -63,8 +63,14 @@ def run(tmp_path: Path) -> tuple[Path, dict[str, Path]]:
         "loops": {"found": 5, "accepted": 2, "rejected": 1, "list": loops},
         "merges": [{"time": 12.5, "group": "0", "members": ["0", "1"]}],
         "refinement": [{"group": "0", "points": 1800}],
-        "bus": {"per_agent": {a: {"from_agent_bytes": 7, "to_agent_bytes": 300_000}
-                              for a in seqs}},
+        "bus": {"per_agent": {a: {
+            "from_agent_bytes": 7, "to_agent_bytes": 300_000,
+            "from_agent": {"keyframe": {"messages": 1, "bytes": 7, "bytes_per_s": 0.7}},
+            "to_agent": {"ack": {"messages": 2, "bytes": 100_000, "bytes_per_s": 10_000.0},
+                         "group_decoder": {"messages": 1, "bytes": 200_000,
+                                           "bytes_per_s": 20_000.0}}} for a in seqs},
+            "per_group": {"0": {"messages": 1, "bytes": 200_000, "bytes_per_s": 20_000.0}}},
+        "process": {"peak_rss_mb": 712.4, "uptime_s": 10.0},
     }
     (run / "metrics.json").write_text(json.dumps(metrics))
     return run, seqs
@@ -90,12 +96,21 @@ def test_report_numbers(run: tuple[Path, dict[str, Path]]) -> None:
         assert Path(plot).read_bytes()[:4] == b"\x89PNG"
     assert "not found" in report["mesh"]["skipped"]
     assert json.loads((folder / "report.json").read_text())["all"]["groups"] == 1
+    traffic = report["traffic"]
+    assert traffic["agents"]["1"]["to_agent"]["group_decoder"]["bytes_per_s"] == 20_000.0
+    assert traffic["agents"]["0"]["from_agent"]["keyframe"]["bytes"] == 7
+    assert traffic["groups"]["0"]["bytes"] == 200_000 and traffic["seconds"] == 10.0
+    memory = report["memory_mb"]
+    assert memory["server"] == 712.4 and memory["agent_0"] == 600.0
+    assert memory["agent_1"] == 601.0 and memory["report"] > 10  # this process
 
     out = io.StringIO()
     print_report(report, Console(file=out, width=100))
     text = out.getvalue()
     assert "ATE glob" in text and "12.5" in text and "2.50" in text and "1800" in text
     assert "mesh skipped" in text
+    assert "traffic per agent" in text and "group_decoder" in text and "20.00" in text
+    assert "peak memory (MB): server 712, agent 0 600, agent 1 601, report" in text
 
 
 def test_report_without_ground_truth_or_agent_bus(run: tuple[Path, dict[str, Path]]) -> None:
@@ -110,6 +125,7 @@ def test_report_without_ground_truth_or_agent_bus(run: tuple[Path, dict[str, Pat
     out = io.StringIO()
     print_report(report, Console(file=out, width=100))
     assert " - " in out.getvalue()
+    assert report["memory_mb"]["agent_0"] is None and "agent 0 -" in out.getvalue()
 
 
 def test_report_needs_the_server_metrics(tmp_path: Path) -> None:
