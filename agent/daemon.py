@@ -1,8 +1,11 @@
 """The networked agent: one sequence streamed to a `cpslam-server` over Zenoh.
 
-1. Open a client session to the server's endpoint, retrying (with a message) until
-   ``wait_timeout_s``: agents may start before the server.
-2. Wait until the server's liveliness token is seen.
+1. Open a client session to the server's endpoint, retrying until ``wait_timeout_s``
+   (agents may start before the server); "waiting for the server at …" is logged as soon as
+   the first attempt has not succeeded within a second.
+2. Wait until the server's liveliness token is seen (logged likewise when it takes longer
+   than a second). A stop request (SIGINT/SIGTERM) ends either wait within a fraction of a
+   second.
 3. For every frame: apply what the server pushed, track and map, publish.
 4. When the server's token comes back after it left (restart, network loss), resend every
    message it has not acknowledged (the outbox); the server drops what it already had.
@@ -11,7 +14,7 @@
 
 Exit codes: 0 done and acknowledged, 3 no server within ``wait_timeout_s``, 4 the server did
 not acknowledge everything within ``ack_timeout_s`` (outputs are written all the same),
-130 interrupted (outputs written).
+130 interrupted (outputs written once streaming has begun).
 """
 
 from __future__ import annotations
@@ -31,12 +34,20 @@ if TYPE_CHECKING:
     from cpslam.common.config import CpslamConfig
     from cpslam.common.datasets import RGBDSequence
 
-__all__ = ["EXIT_NO_SERVER", "EXIT_UNACKED", "ServerPresence", "open_client", "run_networked"]
+__all__ = ["EXIT_INTERRUPTED", "EXIT_NO_SERVER", "EXIT_UNACKED", "ServerPresence",
+           "open_client", "run_networked"]
 
 logger = logging.getLogger(__name__)
 
 EXIT_NO_SERVER = 3
 EXIT_UNACKED = 4
+EXIT_INTERRUPTED = 130
+
+# A signal handler that sets a stop event cannot wake a thread blocked on another event or
+# condition, so waits that must honour `stop` block in slices of this length.
+STOP_CHECK_S = 0.2
+# Waits longer than this are announced in the log; shorter ones stay quiet.
+ANNOUNCE_AFTER_S = 1.0
 
 
 class ServerPresence:
@@ -58,33 +69,93 @@ class ServerPresence:
         with self._cond:
             self.up = False
 
-    def wait(self, timeout_s: float) -> bool:
-        """Block until the server is present (True) or `timeout_s` passed (False)."""
+    def wait(self, timeout_s: float, stop: threading.Event | None = None) -> bool:
+        """Block until the server is present (True), or `timeout_s` passed or `stop` was set
+        (False; `stop` is looked at every `STOP_CHECK_S`)."""
+        deadline = time.monotonic() + timeout_s
         with self._cond:
-            return self._cond.wait_for(lambda: self.up, timeout=timeout_s)
+            while not self.up:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0 or (stop is not None and stop.is_set()):
+                    return False
+                self._cond.wait(remaining if stop is None else min(remaining, STOP_CHECK_S))
+            return True
 
     def close(self) -> None:
         self._watch.close()
 
 
-def open_client(cfg: CpslamConfig, wait_timeout_s: float, what: str = "agent") -> Bus | None:
-    """A client bus to the configured endpoints, retried until `wait_timeout_s`; None if the
-    server could not be reached."""
-    deadline = time.monotonic() + wait_timeout_s
-    endpoints = ", ".join(cfg.transport.connect) or "tcp/127.0.0.1:7447"
-    announced = False
-    while True:
+class _OpenAttempt:
+    """One `bus_from_config` on its own thread: opening a client session blocks for up to
+    ``transport.open_timeout_s``, and a stop request must not wait for that."""
+
+    def __init__(self, cfg: CpslamConfig) -> None:
+        self.done = threading.Event()
+        self.bus: Bus | None = None
+        self.error: Exception | None = None
+        self._lock = threading.Lock()
+        self._abandoned = False
+        threading.Thread(target=self._run, args=(cfg,), name="bus-open", daemon=True).start()
+
+    def _run(self, cfg: CpslamConfig) -> None:
+        bus = None
         try:
-            return bus_from_config(cfg.transport, "agent")
-        except BusError as err:
-            if time.monotonic() >= deadline:
-                logger.error("%s: no server at %s after %.0f s (%s)", what, endpoints,
-                             wait_timeout_s, err)
+            bus = bus_from_config(cfg.transport, "agent")
+        except Exception as err:  # noqa: BLE001 - handed to the waiting thread
+            self.error = err
+        with self._lock:
+            abandoned = self._abandoned
+            if not abandoned:
+                self.bus = bus
+        if abandoned and bus is not None:
+            bus.close()  # opened after its caller gave up
+        self.done.set()
+
+    def abandon(self) -> None:
+        """Nobody wants the session any more: close it, now or when it opens."""
+        with self._lock:
+            self._abandoned = True
+            bus, self.bus = self.bus, None
+        if bus is not None:
+            bus.close()
+
+
+def open_client(cfg: CpslamConfig, wait_timeout_s: float, what: str = "agent",
+                stop: threading.Event | None = None) -> Bus | None:
+    """A client bus to the configured endpoints, retried until `wait_timeout_s`; None if the
+    server could not be reached, or at once when `stop` is set (the caller tells which)."""
+    t0 = time.monotonic()
+    deadline = t0 + wait_timeout_s
+    endpoints = ", ".join(cfg.transport.connect) or "tcp/127.0.0.1:7447"
+    stop = stop if stop is not None else threading.Event()
+    announced = False
+
+    def announce() -> None:
+        nonlocal announced
+        if not announced:
+            logger.info("%s: waiting for the server at %s (up to %.0f s) …", what, endpoints,
+                        wait_timeout_s)
+            announced = True
+
+    while not stop.is_set():
+        attempt = _OpenAttempt(cfg)
+        while not attempt.done.wait(STOP_CHECK_S):
+            if stop.is_set():
+                attempt.abandon()
                 return None
-            if not announced:
-                logger.info("%s: waiting for the server at %s …", what, endpoints)
-                announced = True
-            time.sleep(min(1.0, max(deadline - time.monotonic(), 0.0)))
+            if time.monotonic() - t0 >= ANNOUNCE_AFTER_S:
+                announce()
+        if attempt.bus is not None:
+            return attempt.bus
+        if not isinstance(attempt.error, BusError):
+            raise attempt.error  # a configuration error, not an absent server
+        if time.monotonic() >= deadline:
+            logger.error("%s: no server at %s after %.0f s (%s)", what, endpoints,
+                         wait_timeout_s, attempt.error)
+            return None
+        announce()
+        stop.wait(min(1.0, max(deadline - time.monotonic(), 0.0)))
+    return None
 
 
 def run_networked(cfg: CpslamConfig, seq: RGBDSequence, agent_id: str, run_dir: Path,
@@ -96,17 +167,29 @@ def run_networked(cfg: CpslamConfig, seq: RGBDSequence, agent_id: str, run_dir: 
     from cpslam.agent.node import AgentNode
     from cpslam.common.logs import make_progress
 
-    bus = open_client(cfg, wait_timeout_s, f"agent {agent_id}")
+    stop = stop if stop is not None else threading.Event()
+    bus = open_client(cfg, wait_timeout_s, f"agent {agent_id}", stop)
     if bus is None:
+        if stop.is_set():
+            logger.info("agent %s: interrupted while waiting for the server", agent_id)
+            return EXIT_INTERRUPTED
         return EXIT_NO_SERVER
-    stop = stop or threading.Event()
     with bus:
         presence = ServerPresence(bus, cfg.transport.session)
         t_wait = time.monotonic()
-        if not presence.wait(wait_timeout_s):
+        found = presence.wait(min(ANNOUNCE_AFTER_S, wait_timeout_s), stop)
+        if not found and not stop.is_set():
+            logger.info("agent %s: connected to %s; waiting for a cpslam-server on session %r "
+                        "(up to %.0f s) …", agent_id, ", ".join(cfg.transport.connect) or
+                        "tcp/127.0.0.1:7447", cfg.transport.session, wait_timeout_s)
+            found = presence.wait(max(t_wait + wait_timeout_s - time.monotonic(), 0.0), stop)
+        if not found:
+            presence.close()
+            if stop.is_set():
+                logger.info("agent %s: interrupted while waiting for the server", agent_id)
+                return EXIT_INTERRUPTED
             logger.error("agent %s: connected, but no cpslam-server on session %r within %.0f s",
                          agent_id, cfg.transport.session, wait_timeout_s)
-            presence.close()
             return EXIT_NO_SERVER
         logger.info("agent %s: server found (%.1f s); streaming %d frames", agent_id,
                     time.monotonic() - t_wait, len(seq))
@@ -138,7 +221,7 @@ def run_networked(cfg: CpslamConfig, seq: RGBDSequence, agent_id: str, run_dir: 
             node.close()
             presence.close()
     if interrupted or stop.is_set():
-        return 130
+        return EXIT_INTERRUPTED
     if not acked:
         logger.error("agent %s: %d messages were never acknowledged", agent_id,
                      len(node.link.outbox))

@@ -1,0 +1,124 @@
+"""The networked agent's waits for the server: announced at once, interrupted promptly."""
+
+from __future__ import annotations
+
+import logging
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from cpslam.agent.daemon import (
+    EXIT_INTERRUPTED,
+    ServerPresence,
+    open_client,
+    run_networked,
+)
+from cpslam.common.bus import InMemoryBus, ZenohBus
+from cpslam.common.config import load_config, override_config
+from cpslam.demo import free_port
+
+SESSION = "waits"
+
+
+def _cfg(port: int, open_timeout_s: float = 5.0):
+    return override_config(load_config("tiny", env={}), [
+        f"transport.connect=tcp/127.0.0.1:{port}", f"transport.session={SESSION}",
+        f"transport.open_timeout_s={open_timeout_s}"])
+
+
+class _StopOn(logging.Handler):
+    """Sets `stop` shortly after a log line containing `text` (records when it did)."""
+
+    def __init__(self, text: str, stop: threading.Event, delay_s: float = 0.3) -> None:
+        super().__init__(logging.INFO)
+        self.text, self.stop, self.delay_s = text, stop, delay_s
+        self.stopped_at: float | None = None
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if self.text in record.getMessage() and self.stopped_at is None:
+            self.stopped_at = time.monotonic() + self.delay_s
+            threading.Timer(self.delay_s, self.stop.set).start()
+
+
+def test_open_client_says_it_waits_before_the_first_attempt_fails_and_stops(caplog) -> None:
+    port = free_port()
+    stop = threading.Event()
+    stopper = _StopOn("waiting for the server at", stop)
+    logging.getLogger("cpslam.agent.daemon").addHandler(stopper)
+    t0 = time.monotonic()
+    try:
+        with caplog.at_level(logging.INFO, logger="cpslam.agent.daemon"):
+            bus = open_client(_cfg(port), 60.0, "agent w", stop)
+    finally:
+        logging.getLogger("cpslam.agent.daemon").removeHandler(stopper)
+    assert bus is None and stop.is_set()
+    # Announced about a second in, although one open attempt lasts 5 s here...
+    assert stopper.stopped_at is not None and stopper.stopped_at - t0 < 3.0
+    assert f"tcp/127.0.0.1:{port}" in caplog.text
+    # ...and the stop request did not wait for that attempt either.
+    assert time.monotonic() - stopper.stopped_at < 1.0
+
+
+def test_presence_wait_honours_stop() -> None:
+    with InMemoryBus() as bus:
+        presence = ServerPresence(bus, SESSION)
+        stop = threading.Event()
+        threading.Timer(0.2, stop.set).start()
+        t0 = time.monotonic()
+        assert presence.wait(30.0, stop) is False
+        assert time.monotonic() - t0 < 1.0
+        assert presence.wait(0.05) is False  # no stop: plain timeout
+        presence.close()
+
+
+def test_connected_without_a_server_is_logged_and_interruptible(tmp_path: Path,
+                                                                caplog) -> None:
+    port = free_port()
+    stop = threading.Event()
+    stopper = _StopOn("waiting for a cpslam-server on session", stop)
+    logging.getLogger("cpslam.agent.daemon").addHandler(stopper)
+    # A bare Zenoh router: the agent connects, but no server token ever appears.
+    with ZenohBus(mode="router", listen=[f"tcp/127.0.0.1:{port}"]):
+        try:
+            with caplog.at_level(logging.INFO, logger="cpslam.agent.daemon"):
+                code = run_networked(_cfg(port), None, "w", tmp_path, "cpu",  # type: ignore
+                                     wait_timeout_s=60.0, show_progress=False, stop=stop)
+        finally:
+            logging.getLogger("cpslam.agent.daemon").removeHandler(stopper)
+    assert code == EXIT_INTERRUPTED
+    assert stopper.stopped_at is not None and time.monotonic() - stopper.stopped_at < 1.0
+    assert "interrupted while waiting for the server" in caplog.text
+
+
+@pytest.mark.slow
+def test_sigint_while_waiting_for_the_server_exits_130(tmp_path: Path) -> None:
+    from cpslam.demo import scene_data
+
+    seq = scene_data(tmp_path, "room", 1, 3, 16, 12, seed=0, show_progress=False)[0]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cpslam.agent.cli", "--seq", str(seq), "--preset", "tiny",
+         "--connect", f"tcp/127.0.0.1:{free_port()}", "--wait-timeout", "120",
+         "--no-progress", "--out", str(tmp_path / "run")],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    lines: list[str] = []
+    try:
+        assert proc.stdout is not None
+        for line in proc.stdout:  # ends when the process closes its output
+            lines.append(line)
+            if "waiting for the server at" in line:
+                break
+        t0 = time.monotonic()
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    text = "".join(lines) + out
+    assert proc.returncode == 130, text
+    assert time.monotonic() - t0 < 4.0, text  # not the 120 s wait, nor a 5 s open attempt
+    assert "Traceback" not in text and "interrupted while waiting" in text
