@@ -11,6 +11,7 @@ import json
 import os
 import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -23,8 +24,52 @@ PORT = 7447
 AGENTS = ("0", "1")
 
 
+class SetupFailed(Exception):
+    """A set-up step failed; the message says which and why."""
+
+
 def _ip(*args: str) -> None:
-    subprocess.run(["ip", *args], check=True, capture_output=True, text=True)
+    try:
+        subprocess.run(["ip", *args], check=True, capture_output=True, text=True, timeout=30)
+    except subprocess.CalledProcessError as err:
+        why = (err.stderr or err.stdout or "").strip() or f"exit code {err.returncode}"
+        raise SetupFailed(f"`ip {' '.join(args)}` failed: {why}") from None
+    except (OSError, subprocess.TimeoutExpired) as err:
+        raise SetupFailed(f"`ip {' '.join(args)}` could not run: {err}") from None
+
+
+def build_namespaces(tag: str, undo: list[list[str]]) -> tuple[dict, dict]:
+    """Create the server's and each agent's namespace, joined by veth pairs with their own
+    subnets. Every step that creates something appends the `ip` arguments that remove it to
+    `undo` (run newest first by the caller, whatever happened); a failing step raises
+    `SetupFailed`."""
+    names = {"server": f"{tag}s", **{a: f"{tag}a{a}" for a in AGENTS}}
+    for ns in names.values():
+        _ip("netns", "add", ns)
+        undo.append(["netns", "del", ns])  # deleting a namespace removes the veth ends in it
+        _ip("-n", ns, "link", "set", "lo", "up")
+    _ip("netns", "exec", names["server"], "true")  # exec needs more rights than add
+    addresses = {}
+    for i, a in enumerate(AGENTS, start=1):
+        srv_if, ag_if = f"{tag}v{a}s", f"{tag}v{a}a"
+        _ip("link", "add", srv_if, "type", "veth", "peer", "name", ag_if)
+        # Until both ends are moved the pair lives in this namespace: remove it by name.
+        undo.append(["link", "del", srv_if])
+        _ip("link", "set", srv_if, "netns", names["server"])
+        _ip("link", "set", ag_if, "netns", names[a])
+        _ip("-n", names["server"], "addr", "add", f"10.77.{i}.1/24", "dev", srv_if)
+        _ip("-n", names[a], "addr", "add", f"10.77.{i}.2/24", "dev", ag_if)
+        _ip("-n", names["server"], "link", "set", srv_if, "up")
+        _ip("-n", names[a], "link", "set", ag_if, "up")
+        addresses[a] = (f"10.77.{i}.1", srv_if)
+    return names, addresses
+
+
+def remove(undo: list[list[str]]) -> None:
+    """Run the undo steps, newest first; what is already gone is no error."""
+    for args in reversed(undo):
+        subprocess.run(["ip", *args], capture_output=True, timeout=30)
+    undo.clear()
 
 
 @pytest.fixture
@@ -32,35 +77,34 @@ def namespaces():
     """{"server": ns, "0": ns, "1": ns} and the server's address as seen by each agent."""
     if shutil.which("ip") is None:
         pytest.skip("iproute2 (`ip`) is not installed")
-    tag = f"cps{os.getpid() % 100000}"
-    names = {"server": f"{tag}s", **{a: f"{tag}a{a}" for a in AGENTS}}
-    made: list[str] = []
+    undo: list[list[str]] = []
     try:
-        for ns in names.values():
-            _ip("netns", "add", ns)
-            made.append(ns)
-            _ip("-n", ns, "link", "set", "lo", "up")
-    except subprocess.CalledProcessError as err:
-        for ns in made:
-            subprocess.run(["ip", "netns", "del", ns], capture_output=True)
-        pytest.skip(f"cannot create network namespaces here ({err.stderr.strip()}); "
-                    "needs root / CAP_NET_ADMIN")
-    addresses = {}
+        names, addresses = build_namespaces(f"cps{os.getpid() % 100000}", undo)
+    except SetupFailed as err:
+        remove(undo)
+        pytest.skip(f"cannot set up network namespaces here ({err}); needs root / "
+                    "CAP_NET_ADMIN and veth support")
     try:
-        for i, a in enumerate(AGENTS, start=1):
-            srv_if, ag_if = f"{tag}v{a}s", f"{tag}v{a}a"
-            _ip("link", "add", srv_if, "type", "veth", "peer", "name", ag_if)
-            _ip("link", "set", srv_if, "netns", names["server"])
-            _ip("link", "set", ag_if, "netns", names[a])
-            _ip("-n", names["server"], "addr", "add", f"10.77.{i}.1/24", "dev", srv_if)
-            _ip("-n", names[a], "addr", "add", f"10.77.{i}.2/24", "dev", ag_if)
-            _ip("-n", names["server"], "link", "set", srv_if, "up")
-            _ip("-n", names[a], "link", "set", ag_if, "up")
-            addresses[a] = (f"10.77.{i}.1", srv_if)
         yield names, addresses
     finally:
-        for ns in made:  # deleting a namespace removes its veth ends
-            subprocess.run(["ip", "netns", "del", ns], capture_output=True)
+        remove(undo)
+
+
+def test_a_failing_set_up_step_undoes_what_was_made(monkeypatch) -> None:
+    calls: list[tuple[str, ...]] = []
+
+    def fake_ip(*args: str) -> None:
+        calls.append(args)
+        if args[:2] == ("-n", "ts") and "addr" in args:  # the first address fails
+            raise SetupFailed("`ip addr add` failed: Operation not permitted")
+
+    monkeypatch.setattr(sys.modules[__name__], "_ip", fake_ip)
+    undo: list[list[str]] = []
+    with pytest.raises(SetupFailed, match="Operation not permitted"):
+        build_namespaces("t", undo)
+    assert undo == [["netns", "del", "ts"], ["netns", "del", "ta0"], ["netns", "del", "ta1"],
+                    ["link", "del", "tv0s"]]
+    assert ("link", "add", "tv0s", "type", "veth", "peer", "name", "tv0a") in calls
 
 
 def _rx_bytes(ns: str, dev: str) -> int:
