@@ -6,12 +6,14 @@ for the status query and `finalise` at the end; each returns the messages to sen
 (`Outgoing`). Time comes from the injected ``now`` and keyframe images from ``fetch_image``
 (the server pulls images only for loop candidates and fine-tuning), so tests drive it fully.
 
-Loop pipeline per new keyframe: descriptor query -> candidates (fine/coarse) -> both images
-pulled -> coarse registration -> optional rendering-based refinement (``refine_pose``) ->
-accept/reject by overlap and residual -> a fine loop between two groups merges them (align,
-fuse, average and fine-tune the decoders) -> pose graph of the group -> `ServerUpdate` to
-every member (alignment, corrected keyframe poses, other members' points) and, after a
-merge, a `GroupDecoder`. See docs/server.md.
+Loop pipeline per new keyframe: descriptor query -> candidates (fine/coarse) -> `LoopBook`
+(each pair verified once; one whose images could not be pulled is tried again later, up to
+``loop.max_attempts`` tries) -> both images pulled -> coarse registration (RANSAC + ICP, or
+the identity with ``loop.coarse_method: none``, the paper) -> optional rendering-based
+refinement (``refine_pose``) -> accept/reject by overlap and residual -> a fine loop between
+two groups merges them (align, fuse, average and fine-tune the decoders) -> pose graph of the
+group -> `ServerUpdate` to every member (alignment, corrected keyframe poses, other members'
+points) and, after a merge, a `GroupDecoder`. See docs/server.md.
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ from cpslam.protocol import GroupDecoder, KeyframeImage, Message, ServerUpdate
 from cpslam.server.federation import FederatedRound, fedavg
 from cpslam.server.fusion import ForeignTracker, MemberMap, View, finetune_decoders, fuse
 from cpslam.server.groups import Group, Groups
+from cpslam.server.loops import LoopBook, LoopCandidate
 from cpslam.server.pose_graph import PoseGraph, loop_sigmas
 from cpslam.server.registry import Registry
 from cpslam.server.result import FinalResult, finalise_backend
@@ -114,7 +117,8 @@ class Backend:
             None`` refining a coarse loop pose (`from_config`: a `PoseRefiner` unless
             ``loop.refine`` is false); None uses the coarse estimate.
         database: loop database (default: `cpslam.server.loops.DescriptorDatabase`).
-        register: ``(src_image_b, dst_image_a) -> Registration`` (default: `register_rgbd`).
+        register: ``(src_image_b, dst_image_a) -> Registration``, the coarse stage (default:
+            `register_rgbd`, or with ``loop.coarse_method`` "none" the identity, verified).
         decoders_factory: builds fresh `Decoders` to load averaged weights into for
             fine-tuning; None skips fine-tuning.
         sampler: ray sampler of the fine-tunes (default: the paper's).
@@ -126,6 +130,8 @@ class Backend:
             seconds and leaves the rest for the next step, so a daemon stays responsive (acks,
             updates) while a backlog is worked off. None (lock-step runs): no limit, so the
             work done per step does not depend on the machine's speed.
+        retry_after_s: a candidate whose keyframe images could not be pulled is tried again
+            this many seconds later (``loop.max_attempts`` tries in all).
     """
 
     def __init__(
@@ -151,8 +157,9 @@ class Backend:
         share_every_s: float = 10.0,
         seed: int = 0,
         verify_budget_s: float | None = None,
+        retry_after_s: float = 5.0,
     ) -> None:
-        self.verify_budget_s = verify_budget_s
+        self.verify_budget_s, self.retry_after_s = verify_budget_s, retry_after_s
         self.loop_cfg, self.fed_cfg = loop, federation
         self.pg_cfg, self.refine_cfg = pose_graph, refinement
         self.fetch_image, self.now = fetch_image, now
@@ -177,13 +184,16 @@ class Backend:
         self.merges: list[dict] = []
         self.pose_graph_runs: list[dict] = []
         self.update_seq: dict[str, int] = {}
-        self._seen_pairs: set[tuple[str, int, str, int]] = set()
+        self.book = LoopBook(max_attempts=loop.max_attempts)
         self._candidates: list[Candidate] = []
+        self._retry: list[tuple[float, Candidate]] = []  # (due time, candidate)
         self._images: OrderedDict[tuple[str, int], KeyframeImage | None] = OrderedDict()
         self._last_share: dict[str, tuple[float, tuple]] = {}
         self._warned_refine = False
-        self.loops_found = 0
         self.t_start = now()
+        if loop.coarse_method == "none" and not loop.refine:
+            logger.warning("loop.coarse_method none without loop.refine: a loop is accepted only "
+                           "where its two keyframes align at the identity")
 
     @classmethod
     def from_config(cls, cfg: CpslamConfig, fetch_image: Callable[[str, int], KeyframeImage |
@@ -238,6 +248,10 @@ class Backend:
         out: list[Outgoing] = []
         for agent, kf in self.registry.take_new_keyframes():
             self._query(agent, kf)
+        now = self.now()
+        due = [c for t, c in self._retry if t <= now]
+        self._retry = [(t, c) for t, c in self._retry if t > now]
+        self._candidates += self.book.select(due)
         dirty: dict[str, bool] = {}
         # Pairs that can merge two groups go first: a merge changes what every agent does.
         self._candidates.sort(key=lambda c: (self.groups.same_group(c.agent_a, c.agent_b)
@@ -277,20 +291,34 @@ class Backend:
         except Exception:  # noqa: BLE001
             logger.exception("loop database failed on keyframe %s/%d", agent, kf)
             return
-        for c in candidates[: self.loop_cfg.max_candidates]:
-            key = _pair(c)
-            if key in self._seen_pairs or (c.agent_a == c.agent_b and c.kf_a == c.kf_b):
-                continue
-            self._seen_pairs.add(key)
-            self.loops_found += 1
-            self._candidates.append(c)
+        fresh = [c for c in candidates[: self.loop_cfg.max_candidates]
+                 if not (c.agent_a == c.agent_b and c.kf_a == c.kf_b)]
+        self._candidates += self.book.select(fresh)  # pairs already verified are skipped
+
+    @property
+    def loops_found(self) -> int:
+        """Distinct candidate pairs offered for verification."""
+        return self.book.found
 
     def _verify(self, cand: Candidate) -> LoopRecord | None:
         t0 = time.perf_counter()
         img_a, img_b = self._image(cand.agent_a, cand.kf_a), self._image(cand.agent_b, cand.kf_b)
         reg, reason = None, ""
-        if img_a is None or img_b is None or img_a.depth is None or img_b.depth is None:
-            reason = "keyframe image unavailable"
+        unavailable = img_a is None or img_b is None or img_a.depth is None or img_b.depth is None
+        if unavailable:
+            # Says nothing about the pair (agent busy or gone): try again later, a few times.
+            self.book.record(cand, accepted=False, retry=True)
+            tries = self.book.attempts(cand)
+            if self.book.status(cand) == "failed":
+                for key in ((cand.agent_a, int(cand.kf_a)), (cand.agent_b, int(cand.kf_b))):
+                    if key in self._images and self._images[key] is None:
+                        del self._images[key]  # fetch it again at the next try
+                self._retry.append((self.now() + self.retry_after_s, cand))
+                logger.info("loop %s/%d - %s/%d: keyframe image unavailable (try %d of %d), "
+                            "retried in %.0f s", cand.agent_a, cand.kf_a, cand.agent_b,
+                            cand.kf_b, tries, self.book.max_attempts, self.retry_after_s)
+                return None
+            reason = f"keyframe image unavailable ({tries} tries)"
         else:
             try:
                 reg = self.register(img_b, img_a)
@@ -298,7 +326,9 @@ class Backend:
                     if not self._warned_refine:
                         logger.info("no rendering-based refinement: coarse loop poses are used")
                         self._warned_refine = True
-                elif reg.success:
+                elif reg.success or self.loop_cfg.coarse_method == "none":
+                    # Without a coarse stage the refinement starts at the identity, which
+                    # rarely verifies by itself: refine every pair.
                     refined = self.refine_pose(cand, reg.T_dst_src, img_a, img_b)
                     reg = refined if refined is not None else reg
                 reason = _judge(reg, self.loop_cfg)
@@ -318,6 +348,8 @@ class Backend:
             refinement=(getattr(reg, "details", None) or {}).get("refinement"),
         )
         self.loops.append(record)
+        if not unavailable:  # (an unavailable pair's last try was recorded above)
+            self.book.record(cand, accepted=record.accepted)
         logger.info("loop %s/%d - %s/%d (%s, %.3f): %s", cand.agent_a, cand.kf_a, cand.agent_b,
                     cand.kf_b, cand.kind, cand.score, "accepted" if not reason else reason)
         return record
@@ -554,6 +586,7 @@ class Backend:
 
     def finalise(self) -> FinalResult:
         """Final pose graph over everything, refined fused maps, trajectories, metrics."""
+        self._retry = [(-np.inf, c) for _, c in self._retry]  # last chance: not in 5 s
         self.step()
         self.registry.drop_unresolved()
         return finalise_backend(self)
@@ -573,7 +606,7 @@ class Backend:
             "loops": {"found": self.loops_found,
                       "accepted": sum(lp.accepted for lp in self.loops),
                       "rejected": sum(not lp.accepted for lp in self.loops),
-                      "pending": len(self._candidates)},
+                      "pending": len(self._candidates), "retrying": len(self._retry)},
             "rounds": {"closed": len(self.rounds_closed), "open": sorted(self.rounds)},
             "merges": len(self.merges),
             "dropped": dict(self.registry.dropped),
@@ -590,8 +623,11 @@ class Backend:
                           self.corrected.items()],
             "rounds_closed": self.rounds_closed, "merges": self.merges,
             "pose_graph_runs": self.pose_graph_runs, "update_seq": dict(self.update_seq),
-            "seen_pairs": [list(p) for p in sorted(self._seen_pairs)],
-            "loops_found": self.loops_found,
+            "loop_book": self.book.state_dict(),
+            # Queued and retrying candidates are verified after a reload (the book keeps no
+            # pending pairs, and the queries that found them do not run again).
+            "queued": [[c.agent_a, int(c.kf_a), c.agent_b, int(c.kf_b), float(c.score),
+                        str(c.kind)] for c in [*self._candidates, *(c for _, c in self._retry)]],
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -604,10 +640,17 @@ class Backend:
         self.rounds_closed, self.merges = list(state["rounds_closed"]), list(state["merges"])
         self.pose_graph_runs = list(state["pose_graph_runs"])
         self.update_seq = {str(a): int(s) for a, s in state["update_seq"].items()}
-        self._seen_pairs = {(str(a), int(ka), str(b), int(kb)) for a, ka, b, kb in
-                            state["seen_pairs"]}
-        self.loops_found = int(state["loops_found"])
-        self.rounds, self._candidates = {}, []
+        self.book = LoopBook(max_attempts=self.book.max_attempts)
+        if "loop_book" in state:
+            self.book.load_state_dict(state["loop_book"])
+        else:  # saved before the back end kept a LoopBook: the loop records hold the verdicts
+            for lp in self.loops:
+                if self.book.select([lp]):
+                    self.book.record(lp, accepted=lp.accepted)
+        self.rounds, self._retry = {}, []
+        self._candidates = self.book.select([
+            LoopCandidate(str(a), int(ka), str(b), int(kb), float(score), kind)
+            for a, ka, b, kb, score, kind in state.get("queued", [])])
         new = set(self.registry.new_keyframes)
         for agent, rec in self.registry.agents.items():
             for kf in rec.kf_ids:
@@ -641,9 +684,16 @@ def _default_database(loop: LoopConfig) -> LoopDatabase:
 def _default_register(loop: LoopConfig, seed: int) -> Callable[[KeyframeImage, KeyframeImage],
                                                                 Any]:
     def register(src: KeyframeImage, dst: KeyframeImage) -> Any:
-        from cpslam.server.registration import RegistrationParams, register_rgbd
+        from cpslam.server.registration import RegistrationParams, register_rgbd, verify
 
         params = RegistrationParams.from_config(loop, seed)
+        if loop.coarse_method == "none":
+            # The paper: no coarse stage, the loop keyframe starts at the other keyframe's
+            # pose (identity relative pose) and only the rendering refinement moves it.
+            result = verify(_rgbd(src), _rgbd(dst), _intrinsics(src), np.eye(4), params,
+                            dst_intrinsics=_intrinsics(dst))
+            result.method = "identity"
+            return result
         return register_rgbd(_rgbd(src), _rgbd(dst), _intrinsics(src), params,
                              dst_intrinsics=_intrinsics(dst))
 

@@ -55,8 +55,10 @@ class LoopConfig(Section):
     """Within one agent, keyframes fewer than this many keyframes apart are not loop candidates."""
     max_candidates: PositiveInt = 3
     """At most this many candidates per query keyframe are verified."""
+    max_attempts: PositiveInt = 3
+    """Tries of a candidate whose keyframe images could not be pulled before it is rejected."""
     coarse_method: Literal["icp", "none"] = "icp"
-    """Initial relative pose before rendering-based refinement: point-to-plane ICP or identity."""
+    """Coarse loop pose before refinement: icp = RANSAC + ICP on RGB-D; none = identity (paper)."""
     icp_max_distance: PositiveFloat = 0.2
     """Largest correspondence distance (m) in the coarse ICP."""
     icp_voxel_size: PositiveFloat = 0.05

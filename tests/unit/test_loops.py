@@ -186,41 +186,63 @@ def test_loop_book_verifies_each_pair_once():
     assert book.status(cand("b", 3, "a", 10)) == "accepted"
     assert book.status(first[1]) == "rejected"
     assert book.status(cand("x", 0, "y", 0)) is None
-    assert book.metrics() == {"found": 2, "accepted": 1, "rejected": 1, "pending": 0}
+    assert book.metrics() == {"found": 2, "accepted": 1, "rejected": 1, "pending": 0,
+                              "retrying": 0}
     assert book.accepted_pairs() == [(("a", 10), ("b", 3))]
     with pytest.raises(ValueError, match="not selected"):
         book.record(cand("x", 0, "y", 0), accepted=True)
 
 
-def test_loop_book_retries_and_release():
-    book = LoopBook(max_attempts=2)
-    c = cand("a", 5, "b", 1)
+def test_loop_book_retries_only_what_could_not_be_verified():
+    book = LoopBook(max_attempts=3)
+    c, r = cand("a", 5, "b", 1), cand("a", 7, "b", 3)
+    assert book.select([c, r]) == [c, r]
+    book.record(c, accepted=False, retry=True)  # images unavailable: says nothing
+    book.record(r, accepted=False)  # rejected by verification: final
+    assert book.status(c) == "failed" and book.attempts(c) == 1
+    assert book.select([c, r]) == [c]
+    book.record(c, accepted=False, retry=True)
     assert book.select([c]) == [c]
-    book.record(c, accepted=False)
-    assert book.select([c]) == [c]  # second attempt allowed
-    book.record(c, accepted=False)
-    assert book.select([c]) == []
-    d = cand("a", 6, "b", 2)
+    book.record(c, accepted=False, retry=True)  # third try of three: rejected
+    assert book.status(c) == "rejected" and book.select([c]) == []
+    assert book.metrics() == {"found": 2, "accepted": 0, "rejected": 2, "pending": 0,
+                              "retrying": 0}
+    # A retried pair that verifies is accepted once.
+    d = cand("a", 9, "b", 4)
     book.select([d])
-    book.release(d)  # e.g. the images never came: offered again later, not counted twice
-    assert book.status(d) is None
-    assert book.select([d]) == [d]
-    assert book.metrics() == {"found": 2, "accepted": 0, "rejected": 2, "pending": 1}
+    book.record(d, accepted=True, retry=True)  # could not run: accepted is ignored
+    assert book.status(d) == "failed" and book.accepted == 0
+    book.select([d])
+    book.record(d, accepted=True)
+    assert book.status(d) == "accepted" and book.select([d]) == []
+    e = cand("a", 6, "b", 2)
+    book.select([e])
+    book.release(e)  # e.g. the step ran out of time: offered again, not counted twice
+    assert book.status(e) is None
+    assert book.select([e]) == [e]
+    assert book.metrics() == {"found": 4, "accepted": 1, "rejected": 2, "pending": 1,
+                              "retrying": 0}
+    with pytest.raises(ValueError, match="max_attempts"):
+        LoopBook(max_attempts=0)
 
 
 def test_loop_book_state_round_trip():
-    book = LoopBook()
+    book = LoopBook(max_attempts=2)
     a, r, p = cand("a", 9, "b", 1), cand("a", 9, "a", 1), cand("c", 0, "a", 0)
-    book.select([a, r, p])
+    f = cand("d", 0, "a", 0)
+    book.select([a, r, p, f])
     book.record(a, accepted=True)
     book.record(r, accepted=False)
+    book.record(f, accepted=False, retry=True)
     state = book.state_dict()
-    copy = LoopBook()
+    copy = LoopBook(max_attempts=2)
     copy.load_state_dict(state)
-    # The pending pair was not persisted: it is found again (and counted once).
-    assert copy.metrics() == {"found": 2, "accepted": 1, "rejected": 1, "pending": 0}
-    assert copy.select([a, r, p]) == [p]
-    assert copy.metrics()["found"] == 3
+    # The pending pair was not persisted: it is found again (and counted once); the pair
+    # that could not be verified keeps its try.
+    assert copy.metrics() == {"found": 3, "accepted": 1, "rejected": 1, "pending": 0,
+                              "retrying": 1}
+    assert copy.select([a, r, p, f]) == [p, f]
+    assert copy.metrics()["found"] == 4 and copy.attempts(f) == 1
     with pytest.raises(ValueError, match="pairs\\[0\\]"):
         copy.load_state_dict({"version": 1, "pairs": [["bad"]]})
 
