@@ -5,7 +5,9 @@ runs the back end and answers status queries. Everything it accepts is persisted
 run folder before it is acknowledged (``server_state.pt``), so a server restarted with the
 same ``--out`` goes on where it stopped and agents resend only what was never acknowledged.
 SIGINT, SIGTERM or a finalise request (`cpslam finalise`) run the final pose graph and
-refinement, write the outputs and exit 0; a second signal exits at once.
+refinement, write the outputs and exit 0; a second signal exits at once (code 130, without
+finalising), except the same signal again within `REPEAT_WINDOW_S` of the first: wrappers
+that signal the whole process group (`timeout`, some supervisors) deliver it twice.
 """
 
 from __future__ import annotations
@@ -13,6 +15,8 @@ from __future__ import annotations
 import logging
 import signal
 import threading
+import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated
 
@@ -33,6 +37,9 @@ logger = logging.getLogger("cpslam.server")
 app = typer.Typer(add_completion=False, context_settings={"help_option_names": ["-h", "--help"]})
 
 STATE_FILE = "server_state.pt"
+REPEAT_WINDOW_S = 1.0
+"""The same signal again within this many seconds of the first is the same request
+delivered twice (to the process and to its process group), not a second request."""
 
 
 @app.command()
@@ -64,7 +71,9 @@ def server(
 
     Agents connect with `cpslam-agent --connect tcp/HOST:PORT`. Outputs (on SIGINT, SIGTERM or
     `cpslam finalise`): RUN/trajectories/, fused_map.ply, pose_graph.g2o, metrics.json,
-    server.log.
+    server.log. A second signal during finalisation exits at once with code 130 without
+    finalising (the state file is kept); the same signal repeated within 1 s is ignored, as
+    wrappers such as `timeout` that signal the whole process group deliver it twice.
 
     Examples:
 
@@ -128,17 +137,33 @@ def server(
 
 def _on_signals(stop: threading.Event) -> None:
     """First SIGINT/SIGTERM: finish cleanly (final pose graph, outputs); second: exit now."""
-
-    def handler(signum: int, _frame: object) -> None:
-        if stop.is_set():
-            logger.warning("second %s: exiting without finalising", signal.Signals(signum).name)
-            raise SystemExit(130)
-        logger.info("%s: finalising (send it again to exit at once)",
-                    signal.Signals(signum).name)
-        stop.set()
-
+    handler = signal_handler(stop)
     signal.signal(signal.SIGINT, handler)
     signal.signal(signal.SIGTERM, handler)
+
+
+def signal_handler(stop: threading.Event, clock: Callable[[], float] = time.monotonic,
+                   window_s: float = REPEAT_WINDOW_S) -> Callable[[int, object], None]:
+    """The handler: the first signal sets `stop`; the same signal within `window_s` of it is
+    ignored (one request delivered twice); any other later signal exits 130."""
+    first: list[tuple[int, float]] = []
+
+    def handler(signum: int, _frame: object) -> None:
+        name, now = signal.Signals(signum).name, clock()
+        if not first:
+            first.append((signum, now))
+            logger.info("%s: finalising (send it again to exit at once)", name)
+            stop.set()
+            return
+        signum0, t0 = first[0]
+        if signum == signum0 and now - t0 < window_s:
+            logger.info("%s again %.2f s after the first: the same request (delivered to the "
+                        "process group too?); still finalising", name, now - t0)
+            return
+        logger.warning("second %s: exiting without finalising", name)
+        raise SystemExit(130)
+
+    return handler
 
 
 def main() -> None:

@@ -1,0 +1,50 @@
+"""`cpslam-server`'s signals: the first finalises, a repeat of it within a second is the same
+request (process-group wrappers deliver it twice), a later or different one exits 130."""
+
+from __future__ import annotations
+
+import signal
+import threading
+
+import pytest
+from typer.testing import CliRunner
+
+from cpslam.server.cli import REPEAT_WINDOW_S, app, signal_handler
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_the_same_signal_twice_at_once_is_one_request() -> None:
+    stop, clock = threading.Event(), Clock()
+    handler = signal_handler(stop, clock)
+    handler(signal.SIGTERM, None)
+    assert stop.is_set()
+    clock.now += 0.05
+    handler(signal.SIGTERM, None)  # e.g. `timeout`: to the process, then to its group
+    clock.now += REPEAT_WINDOW_S
+    with pytest.raises(SystemExit) as exit_info:
+        handler(signal.SIGTERM, None)  # a deliberate second request
+    assert exit_info.value.code == 130
+
+
+def test_a_different_second_signal_exits_at_once() -> None:
+    stop, clock = threading.Event(), Clock()
+    handler = signal_handler(stop, clock)
+    handler(signal.SIGTERM, None)
+    clock.now += 0.1
+    with pytest.raises(SystemExit) as exit_info:
+        handler(signal.SIGINT, None)
+    assert exit_info.value.code == 130
+
+
+def test_help_documents_the_second_signal() -> None:
+    result = CliRunner().invoke(app, ["--help"], terminal_width=200)
+    assert result.exit_code == 0
+    text = " ".join(result.output.split())
+    assert "exits at once with code 130" in text and "within 1 s is ignored" in text
