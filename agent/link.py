@@ -12,6 +12,8 @@ applies what the server pushed:
   own (frames follow their keyframe), and the other members' points join the local map;
 - `GroupDecoder`: the shared weights replace the decoders (the mapper builds its Adam afresh at
   every call, so there is no optimiser state to reset) and the round is remembered;
+- after either, the odometry re-fits its map to the new decoders and points before it tracks
+  the next frame (`Odometry.mark_fused`);
 - `KeyframeImageRequest`: answered from the keyframe store (its downsampled RGB-D copy).
 
 Agent keys of the neural point map: the agent's own points and keyframes keep the odometry's
@@ -275,6 +277,7 @@ class AgentLink:
                                   for k, v in msg.tensors.items()})
         self.round = int(msg.round)
         self._mappings, self._samples = 0, 0
+        self.odometry.mark_fused()
         self.stats["decoders"] += 1
         logger.info("agent %s: shared decoder %s#%d loaded", self.agent_id, msg.group_id,
                     msg.round)

@@ -121,6 +121,7 @@ class Odometry:
         self.seed, self.agent_id = seed, agent_id
         self.device = point_map.device
         self.fused = False
+        self._last_rgbd: tuple[torch.Tensor, torch.Tensor] | None = None  # for `_refit`
         self._stamps: list[float] = []
         self._indices: list[int] = []
         self._poses: list[np.ndarray] = []
@@ -175,6 +176,11 @@ class Odometry:
         depth_t = torch.from_numpy(depth).to(self.device)
         rgb_t = torch.from_numpy(rgb).to(self.device).float() / 255.0
 
+        # The server changed the map or the decoders since the last frame: fit them to each
+        # other before tracking leans on them (tracking against freshly averaged decoders
+        # lost an agent of a two-agent run within ten frames of its merge: docs/odometry.md).
+        refit_steps, refit_time = self._refit(generator) if self.fused else (0, 0.0)
+
         t0 = time.perf_counter()
         track_iters, track_loss = 0, 0.0
         if count == 0:
@@ -191,12 +197,14 @@ class Odometry:
             self.point_map.set_keyframe_poses(kf.kf_id, T_world_cam, self.agent_id)
             kf_id = kf.kf_id
 
-        map_time, map_steps, optimise_time = 0.0, 0, 0.0
+        map_time, map_steps, optimise_time = refit_time, refit_steps, refit_time
         if count % self.map_every == 0:
             t1 = time.perf_counter()
-            map_steps, optimise_time = self._map(rgb, depth, rgb_t, depth_t, T_world_cam,
-                                                 kf_id, count, generator)
-            map_time = time.perf_counter() - t1
+            steps, seconds = self._map(rgb, depth, rgb_t, depth_t, T_world_cam, kf_id, count,
+                                       generator)
+            map_steps, optimise_time = map_steps + steps, optimise_time + seconds
+            map_time += time.perf_counter() - t1
+        self._last_rgbd = (rgb_t, depth_t)
 
         self._stamps.append(float(frame.timestamp))
         self._indices.append(int(frame.index))
@@ -223,8 +231,10 @@ class Odometry:
         return len(self._poses)
 
     def mark_fused(self) -> None:
-        """The map was just fused with another sub-map: the next mapping call runs
-        `mapping.iters_after_fusion` steps."""
+        """The map or the decoders changed under the odometry (another agent's points joined,
+        shared decoders were loaded): before the next frame is tracked, features and decoders
+        are fitted for `mapping.iters_after_fusion` steps on the last frame and its co-visible
+        keyframes (after a resume, which keeps no frame, the next mapping call runs them)."""
         self.fused = True
 
     # ---------------------------------------------------------------------------- internals
@@ -262,16 +272,8 @@ class Odometry:
         ids = self.mapper.add_points(self.point_map, self.decoders, self.cnn, rgb, depth,
                                      self.intrinsics, T_world_cam, anchor.kf_id, generator)
         self.keyframes.add_point_ids(anchor.kf_id, ids)
-        views = [View(rgb_t, depth_t, T_world_cam, self.intrinsics)]
-        exclude = () if kf_id is None else (kf_id,)
-        for other in self.keyframes.covisible(T_world_cam, self.intrinsics,
-                                              self.covisible_keyframes, exclude=exclude):
-            kf = self.keyframes.get(other)
-            views.append(View(
-                torch.from_numpy(kf.rgb_small).to(self.device).float() / 255.0,
-                torch.from_numpy(kf.depth_small).to(self.device),
-                kf.T_world_cam, self.keyframes.intrinsics_small,
-            ))
+        views = self._views(rgb_t, depth_t, T_world_cam, exclude=() if kf_id is None
+                            else (kf_id,))
         if count == 0:
             iters, n_pixels = self.iters_first, self.n_pixels_first
         else:
@@ -281,6 +283,34 @@ class Odometry:
         result = self.mapper.optimise(self.point_map, self.decoders, views, iters, n_pixels,
                                       generator)
         return result.steps, result.seconds
+
+    def _refit(self, generator: torch.Generator) -> tuple[int, float]:
+        """`mapping.iters_after_fusion` steps on the last frame (at its pose, which follows
+        the server's corrections) and its co-visible keyframes; steps and seconds."""
+        if self._last_rgbd is None or not self._poses:
+            return 0, 0.0  # nothing to fit on (resumed): the next mapping call does it
+        self.fused = False
+        rgb_t, depth_t = self._last_rgbd
+        result = self.mapper.optimise(self.point_map, self.decoders,
+                                      self._views(rgb_t, depth_t, self._poses[-1]),
+                                      self.iters_after_fusion, self.n_pixels, generator)
+        logger.debug("re-fit after a change from the server: %d steps, loss %.4f -> %.4f",
+                     result.steps, result.loss_first, result.loss_last)
+        return result.steps, result.seconds
+
+    def _views(self, rgb_t: torch.Tensor, depth_t: torch.Tensor, T_world_cam: np.ndarray,
+               exclude: tuple[int, ...] = ()) -> list[View]:
+        """The frame and its co-visible keyframes (their stored small copies)."""
+        views = [View(rgb_t, depth_t, T_world_cam, self.intrinsics)]
+        for other in self.keyframes.covisible(T_world_cam, self.intrinsics,
+                                              self.covisible_keyframes, exclude=exclude):
+            kf = self.keyframes.get(other)
+            views.append(View(
+                torch.from_numpy(kf.rgb_small).to(self.device).float() / 255.0,
+                torch.from_numpy(kf.depth_small).to(self.device),
+                kf.T_world_cam, self.keyframes.intrinsics_small,
+            ))
+        return views
 
     # ---------------------------------------------------------------------------- save/load
 

@@ -177,7 +177,8 @@ class MappingConfig(Section):
     iters: PositiveInt = 200
     """Optimisation steps for every later mapping call."""
     iters_after_fusion: PositiveInt = 150
-    """Optimisation steps for the first mapping call after a sub-map fusion."""
+    """Optimisation steps re-fitting the map before the next frame is tracked when the server
+    changed it (foreign points joined or shared decoders were loaded)."""
     covisible_keyframes: NonNegativeInt = 5
     """Co-visible keyframes whose pixels join the current frame's in every mapping call."""
     lr_decoders: PositiveFloat = 0.003

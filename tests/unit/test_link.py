@@ -13,6 +13,7 @@ from cpslam.agent.odometry import Odometry
 from cpslam.common.camera import Intrinsics
 from cpslam.common.config import load_config
 from cpslam.common.datasets import RGBDFrame
+from cpslam.common.field_config import decoders_from_config
 from cpslam.common.geometry import se3_exp
 from cpslam.protocol import (
     Ack,
@@ -269,3 +270,26 @@ def test_joining_a_group_offers_weights_at_the_next_mapping() -> None:
     msgs = _run(link, 3, 6)
     weights = [m for m in msgs if isinstance(m, DecoderWeights)]
     assert len(weights) == 1 and weights[0].group_id == "g" and weights[0].round == 0
+
+
+def test_shared_decoder_is_fitted_to_the_map_before_the_next_frame_is_tracked() -> None:
+    # Decoders that do not match the agent's features (what an average of two agents' is)
+    # make tracking worse until the map is re-fitted; the re-fit runs before the next track.
+    other = decoders_from_config(load_config("tiny", env={}).field, seed=123).state_dict()
+    losses = {}
+    for refit in (True, False):
+        link = _link(rounds=100)
+        link.odometry.iters_after_fusion = 30
+        _run(link, 0, 4)  # frames 0-3; tiny maps every 5 frames, so frame 4 does not map
+        tensors = {k: (0.5 * v + 0.5 * other[k]).numpy()
+                   for k, v in link.odometry.decoders.state_dict().items()}
+        assert link.apply_decoder(GroupDecoder(group_id="a0", round=1, members=["a0"],
+                                               n_samples=1, tensors=tensors))
+        assert link.odometry.fused
+        if not refit:
+            link.odometry.fused = False
+        result = link.odometry.step(_frame(4))
+        assert result.map_steps == (30 if refit else 0)
+        assert not link.odometry.fused
+        losses[refit] = result.track_loss
+    assert losses[True] < 0.5 * losses[False], losses
