@@ -177,8 +177,7 @@ class MappingConfig(Section):
     iters: PositiveInt = 200
     """Optimisation steps for every later mapping call."""
     iters_after_fusion: PositiveInt = 150
-    """Optimisation steps re-fitting the map before the next frame is tracked when the server
-    changed it (foreign points joined or shared decoders were loaded)."""
+    """Steps re-fitting the map before the next track when the server changed map or decoders."""
     covisible_keyframes: NonNegativeInt = 5
     """Co-visible keyframes whose pixels join the current frame's in every mapping call."""
     lr_decoders: PositiveFloat = 0.003
