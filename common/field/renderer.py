@@ -188,12 +188,15 @@ def render_image(
                                 radius, backend=backend, chunk=chunk)
         keep = window["acc"] >= min_acc
         hit = hit[keep]
-        guide = window["depth"][keep] / window["acc"][keep]
-        fine = render_rays(point_map, decoders, rays_o[hit], rays_d[hit], guide,
-                           sampler or RaySampler(perturb=False), k=k, radius=radius,
-                           backend=backend, chunk=chunk)
-        for key in out:
-            out[key][hit] = fine[key]
+        # No ray left (a pose far from the map, or nothing opaque yet): the sampler cannot
+        # take its range from an empty batch, and the image is empty anyway.
+        if len(hit) > 0:
+            guide = window["depth"][keep] / window["acc"][keep]
+            fine = render_rays(point_map, decoders, rays_o[hit], rays_d[hit], guide,
+                               sampler or RaySampler(perturb=False), k=k, radius=radius,
+                               backend=backend, chunk=chunk)
+            for key in out:
+                out[key][hit] = fine[key]
     return {
         "depth": out["depth"].reshape(h, w),
         "color": out["color"].reshape(h, w, 3),

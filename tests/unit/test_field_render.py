@@ -189,3 +189,26 @@ def test_features_override_optimises_a_subset() -> None:
     assert m.features.grad is None
     m.set_features(rows, active.detach() + 1.0)
     torch.testing.assert_close(m.features.detach()[rows], active.detach() + 1.0)
+
+
+@pytest.mark.parametrize("case", ["no_hit", "below_min_acc"])
+def test_render_image_without_any_kept_ray_is_empty(case: str) -> None:
+    dec = _small_decoders()
+    eye = torch.eye(4, dtype=torch.float64)
+    if case == "no_hit":
+        # One point in view that falls between the rays of a coarse grid: the map has a depth
+        # range in view but no ray finds a neighbour.
+        m = NeuralPointMap(feature_dim=32, cell_size=0.01)
+        m.set_keyframe_poses(0, np.eye(4))
+        m.add_points(torch.tensor([[0.2, 0.2, PLANE_Z]]), 0, torch.zeros(1, 32),
+                     torch.full((1, 3), 200, dtype=torch.uint8))
+        step = 8
+        image = render_image(m, dec, INTR, eye, step=step, radius=0.01)
+    else:
+        # Rays hit the plane, but no window reaches an opacity above 1.
+        step = 4
+        image = render_image(_plane_map(), dec, INTR, eye, step=step, min_acc=1.5)
+    h, w = -(-INTR.height // step), -(-INTR.width // step)
+    assert image["depth"].shape == (h, w) and image["color"].shape == (h, w, 3)
+    for key in ("depth", "color", "var", "acc"):
+        assert float(image[key].abs().sum()) == 0.0, key
