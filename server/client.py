@@ -131,7 +131,8 @@ def format_status(summary: dict) -> str:
                      f"{g.get('round', 0)}")
     loops = summary.get("loops", {})
     lines.append(f"loops: found {loops.get('found', 0)}, accepted {loops.get('accepted', 0)}, "
-                 f"rejected {loops.get('rejected', 0)}, pending {loops.get('pending', 0)}")
+                 f"rejected {loops.get('rejected', 0)}, pending {loops.get('pending', 0)}, "
+                 f"retrying {loops.get('retrying', 0)}")
     rounds = summary.get("rounds", {})
     lines.append(f"federated rounds: closed {rounds.get('closed', 0)}, open "
                  f"{len(rounds.get('open', []))}; merges {summary.get('merges', 0)}")

@@ -168,3 +168,33 @@ def test_subscription_wait_does_not_consume() -> None:
     sub.deliver(Sample("k", b"x", time.time()))
     assert sub.wait(0.05) is True and len(sub) == 1
     assert sub.get(timeout=0).payload == b"x"
+
+
+def test_cpslam_status_prints_the_node_summary_with_retrying_loops(tmp_path: Path,
+                                                                  monkeypatch) -> None:
+    from typer.testing import CliRunner
+
+    from cpslam.cli import app
+    from cpslam.server import client
+
+    node, agent_bus, _ = _setup(tmp_path, persist_every_s=0.0)
+    agent_bus.publish(keys.agent_keyframe(SESSION, "a"), protocol.encode(_keyframe("a", 0, 0)))
+    time.sleep(0.2)
+    node.poll()
+    # The command's own client session, on the node's in-memory network instead of Zenoh.
+    monkeypatch.setattr(client, "_client",
+                        lambda *a: (load_config("tiny"), InMemoryBus(node.bus.network)))
+    raw = CliRunner().invoke(app, ["status", "--json"])
+    assert raw.exit_code == 0, raw.output
+    summary = json.loads(raw.output)
+    # --json is the whole summary the node serves, the back end's loop counts included.
+    assert set(node.backend.status()) <= set(summary)
+    assert summary["loops"] == node.backend.status()["loops"]
+    assert summary["loops"]["retrying"] == 0 and summary["agents"]["a"]["keyframes"] == 1
+    text = CliRunner().invoke(app, ["status"])
+    assert text.exit_code == 0, text.output
+    assert "pending 0, retrying 0" in text.output
+    node.close()
+    summary["loops"].update(pending=1, retrying=2)
+    assert "loops: found 0, accepted 0, rejected 0, pending 1, retrying 2" in \
+        client.format_status(summary)
