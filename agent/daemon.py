@@ -25,7 +25,8 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from cpslam.common.bus import BusError, bus_from_config
+from cpslam.common.bus import open_client
+from cpslam.common.bus.factory import ANNOUNCE_AFTER_S, STOP_CHECK_S
 from cpslam.protocol import keys
 
 if TYPE_CHECKING:
@@ -35,20 +36,13 @@ if TYPE_CHECKING:
     from cpslam.common.datasets import RGBDSequence
 
 __all__ = ["EXIT_INTERRUPTED", "EXIT_NO_SERVER", "EXIT_UNACKED", "ServerPresence",
-           "open_client", "run_networked"]
+           "run_networked"]
 
 logger = logging.getLogger(__name__)
 
 EXIT_NO_SERVER = 3
 EXIT_UNACKED = 4
 EXIT_INTERRUPTED = 130
-
-# A signal handler that sets a stop event cannot wake a thread blocked on another event or
-# condition, so waits that must honour `stop` block in slices of this length.
-STOP_CHECK_S = 0.2
-# Waits longer than this are announced in the log; shorter ones stay quiet.
-ANNOUNCE_AFTER_S = 1.0
-
 
 class ServerPresence:
     """Tracks the server's liveliness token; counts how often it (re)appeared."""
@@ -85,79 +79,6 @@ class ServerPresence:
         self._watch.close()
 
 
-class _OpenAttempt:
-    """One `bus_from_config` on its own thread: opening a client session blocks for up to
-    ``transport.open_timeout_s``, and a stop request must not wait for that."""
-
-    def __init__(self, cfg: CpslamConfig) -> None:
-        self.done = threading.Event()
-        self.bus: Bus | None = None
-        self.error: Exception | None = None
-        self._lock = threading.Lock()
-        self._abandoned = False
-        threading.Thread(target=self._run, args=(cfg,), name="bus-open", daemon=True).start()
-
-    def _run(self, cfg: CpslamConfig) -> None:
-        bus = None
-        try:
-            bus = bus_from_config(cfg.transport, "agent")
-        except Exception as err:  # noqa: BLE001 - handed to the waiting thread
-            self.error = err
-        with self._lock:
-            abandoned = self._abandoned
-            if not abandoned:
-                self.bus = bus
-        if abandoned and bus is not None:
-            bus.close()  # opened after its caller gave up
-        self.done.set()
-
-    def abandon(self) -> None:
-        """Nobody wants the session any more: close it, now or when it opens."""
-        with self._lock:
-            self._abandoned = True
-            bus, self.bus = self.bus, None
-        if bus is not None:
-            bus.close()
-
-
-def open_client(cfg: CpslamConfig, wait_timeout_s: float, what: str = "agent",
-                stop: threading.Event | None = None) -> Bus | None:
-    """A client bus to the configured endpoints, retried until `wait_timeout_s`; None if the
-    server could not be reached, or at once when `stop` is set (the caller tells which)."""
-    t0 = time.monotonic()
-    deadline = t0 + wait_timeout_s
-    endpoints = ", ".join(cfg.transport.connect) or "tcp/127.0.0.1:7447"
-    stop = stop if stop is not None else threading.Event()
-    announced = False
-
-    def announce() -> None:
-        nonlocal announced
-        if not announced:
-            logger.info("%s: waiting for the server at %s (up to %.0f s) …", what, endpoints,
-                        wait_timeout_s)
-            announced = True
-
-    while not stop.is_set():
-        attempt = _OpenAttempt(cfg)
-        while not attempt.done.wait(STOP_CHECK_S):
-            if stop.is_set():
-                attempt.abandon()
-                return None
-            if time.monotonic() - t0 >= ANNOUNCE_AFTER_S:
-                announce()
-        if attempt.bus is not None:
-            return attempt.bus
-        if not isinstance(attempt.error, BusError):
-            raise attempt.error  # a configuration error, not an absent server
-        if time.monotonic() >= deadline:
-            logger.error("%s: no server at %s after %.0f s (%s)", what, endpoints,
-                         wait_timeout_s, attempt.error)
-            return None
-        announce()
-        stop.wait(min(1.0, max(deadline - time.monotonic(), 0.0)))
-    return None
-
-
 def run_networked(cfg: CpslamConfig, seq: RGBDSequence, agent_id: str, run_dir: Path,
                   device: str, wait_timeout_s: float = 300.0, ack_timeout_s: float = 120.0,
                   show_progress: bool = True, stop: threading.Event | None = None) -> int:
@@ -168,7 +89,7 @@ def run_networked(cfg: CpslamConfig, seq: RGBDSequence, agent_id: str, run_dir: 
     from cpslam.common.logs import make_progress
 
     stop = stop if stop is not None else threading.Event()
-    bus = open_client(cfg, wait_timeout_s, f"agent {agent_id}", stop)
+    bus = open_client(cfg.transport, wait_timeout_s, f"agent {agent_id}", stop)
     if bus is None:
         if stop.is_set():
             logger.info("agent %s: interrupted while waiting for the server", agent_id)

@@ -141,12 +141,12 @@ def format_status(summary: dict) -> str:
 
 def _client(connect: list[str] | None, session: str | None, timeout: float):
     """The config (defaults + flags + environment) and an open client bus, or exit 1."""
-    from cpslam.agent.daemon import open_client
+    from cpslam.common.bus import open_client
     from cpslam.common.config.cli import config_or_exit, transport_sets
 
     cfg = config_or_exit("cpu", None, [*transport_sets(session, None, connect),
                                        f"transport.open_timeout_s={max(timeout, 0.5)}"])
-    bus = open_client(cfg, timeout, "client")
+    bus = open_client(cfg.transport, timeout, "client")
     if bus is None:
         where = ", ".join(cfg.transport.connect) or "tcp/127.0.0.1:7447"
         typer.echo(f"error: cannot reach a server at {where}", err=True)

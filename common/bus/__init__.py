@@ -7,7 +7,7 @@
 The bus knows nothing of message types; `cpslam.protocol` encodes and decodes.
 """
 
-from cpslam.common.bus.factory import bus_from_config
+from cpslam.common.bus.factory import bus_from_config, open_client
 from cpslam.common.bus.interface import (
     Bus,
     BusClosedError,
@@ -39,6 +39,7 @@ __all__ = [
     "bus_from_config",
     "intersects",
     "is_concrete",
+    "open_client",
     "validate_key_expr",
     "zenoh_config",
 ]

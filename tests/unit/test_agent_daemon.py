@@ -15,10 +15,9 @@ import pytest
 from cpslam.agent.daemon import (
     EXIT_INTERRUPTED,
     ServerPresence,
-    open_client,
     run_networked,
 )
-from cpslam.common.bus import InMemoryBus, ZenohBus
+from cpslam.common.bus import InMemoryBus, ZenohBus, open_client
 from cpslam.common.config import load_config, override_config
 from cpslam.demo import free_port
 
@@ -49,13 +48,13 @@ def test_open_client_says_it_waits_before_the_first_attempt_fails_and_stops(capl
     port = free_port()
     stop = threading.Event()
     stopper = _StopOn("waiting for the server at", stop)
-    logging.getLogger("cpslam.agent.daemon").addHandler(stopper)
+    logging.getLogger("cpslam.common.bus.factory").addHandler(stopper)
     t0 = time.monotonic()
     try:
-        with caplog.at_level(logging.INFO, logger="cpslam.agent.daemon"):
-            bus = open_client(_cfg(port), 60.0, "agent w", stop)
+        with caplog.at_level(logging.INFO, logger="cpslam.common.bus.factory"):
+            bus = open_client(_cfg(port).transport, 60.0, "agent w", stop)
     finally:
-        logging.getLogger("cpslam.agent.daemon").removeHandler(stopper)
+        logging.getLogger("cpslam.common.bus.factory").removeHandler(stopper)
     assert bus is None and stop.is_set()
     # Announced about a second in, although one open attempt lasts 5 s here...
     assert stopper.stopped_at is not None and stopper.stopped_at - t0 < 3.0

@@ -1,8 +1,11 @@
-"""The hand-written package list in pyproject.toml must cover every source folder."""
+"""The hand-written package list in pyproject.toml must cover every source folder; every
+module keeps the dependency direction; every command has help with examples."""
 
 from __future__ import annotations
 
+import ast
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 from typer.testing import CliRunner
@@ -116,3 +119,75 @@ def test_test_module_names_are_unique() -> None:
         clash = seen.setdefault(path.name, path)
         assert clash == path or path.name == "conftest.py", \
             f"{path.relative_to(ROOT)} and {clash.relative_to(ROOT)} share a module name"
+
+
+# docs/architecture.md: protocol <- common <- agent, server; agent and server never import each
+# other, and only the umbrella `cpslam/` (cli, demo, run) may import both. What each folder may
+# import of cpslam (a name or its submodules):
+ALLOWED = {
+    "protocol": ("cpslam.protocol",),
+    "common": ("cpslam.protocol", "cpslam.common"),
+    "agent": ("cpslam.protocol", "cpslam.common", "cpslam.agent"),
+    "server": ("cpslam.protocol", "cpslam.common", "cpslam.server"),
+}
+# The wire contract runs without the heavy runtime (docs/protocol.md, architecture.md).
+FORBIDDEN_LIBRARIES = {"protocol": ("torch", "zenoh")}
+
+
+def _imported(path: Path, package: str) -> Iterator[tuple[int, str]]:
+    """(line, absolute module name) of every import in `path`, in functions and
+    TYPE_CHECKING blocks too; `from cpslam import x` counts as cpslam.x."""
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            for alias in node.names:
+                yield node.lineno, alias.name
+        elif isinstance(node, ast.ImportFrom):
+            module = node.module or ""
+            if node.level:  # relative to the module's own package
+                parts = package.split(".")
+                module = ".".join([*parts[: len(parts) - node.level + 1], *filter(None, [module])])
+            if module == "cpslam":
+                for alias in node.names:
+                    yield node.lineno, f"cpslam.{alias.name}"
+            else:
+                yield node.lineno, module
+
+
+def _violations(root: Path, folder: str) -> list[str]:
+    allowed = ALLOWED[folder]
+    banned = FORBIDDEN_LIBRARIES.get(folder, ())
+    out = []
+    for path in sorted((root / folder).rglob("*.py")):
+        rel = path.relative_to(root / folder)
+        package = ".".join([TOP[folder], *rel.parent.parts])  # an __init__'s is its own
+        for line, name in _imported(path, package):
+            top = name.split(".")[0]
+            ours = top == "cpslam"
+            if (ours and not any(name == a or name.startswith(a + ".") for a in allowed)) or (
+                    top in banned):
+                out.append(f"{folder}/{rel}:{line} imports {name}")
+    return out
+
+
+def test_layers_import_only_downwards() -> None:
+    bad = [v for folder in ALLOWED for v in _violations(ROOT, folder)]
+    assert not bad, "dependency direction broken (docs/architecture.md):\n" + "\n".join(bad)
+
+
+def test_layer_check_sees_every_kind_of_import(tmp_path: Path) -> None:
+    (tmp_path / "agent" / "sub").mkdir(parents=True)
+    (tmp_path / "protocol").mkdir()
+    (tmp_path / "agent" / "sub" / "mod.py").write_text(
+        "from typing import TYPE_CHECKING\n"
+        "from cpslam.common.bus import Bus\n"
+        "from cpslam import protocol\n"
+        "from .. import node\n"
+        "if TYPE_CHECKING:\n    from cpslam.server.backend import Backend\n"
+        "def f():\n    import cpslam.demo\n    from cpslam import server\n")
+    (tmp_path / "protocol" / "codec.py").write_text("import torch.nn\nimport numpy\n")
+    assert _violations(tmp_path, "agent") == [
+        "agent/sub/mod.py:6 imports cpslam.server.backend",
+        "agent/sub/mod.py:8 imports cpslam.demo",
+        "agent/sub/mod.py:9 imports cpslam.server",
+    ]
+    assert _violations(tmp_path, "protocol") == ["protocol/codec.py:1 imports torch.nn"]
