@@ -108,8 +108,8 @@ def finalise_backend(backend: Backend) -> FinalResult:
         if state is None and len(group.members) == 1:
             state = reg.agents[group.members[0]].decoder
         if state is not None:
-            state = backend._finetune(group, state, backend.refine_cfg.finetune_iters,
-                                      backend.finetune_lr_features, point_map=fused)
+            state = backend.federator.finetune(group, state, backend.refine_cfg.finetune_iters,
+                                               backend.finetune_lr_features, point_map=fused)
             decoders[group.group_id] = state
         refine.append({"group": group.group_id, "points": len(fused)})
     t_refine = time.perf_counter() - t1
