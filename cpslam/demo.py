@@ -16,7 +16,7 @@
 A child that dies (an agent with a non-zero code, the server at all before it was asked to
 finish) stops the others and is named with its log file. Ctrl-C sends SIGINT once to every
 child (agents save what they have, the server finalises) and waits for them; a second Ctrl-C
-kills them.
+kills them (`cpslam.supervisor`).
 """
 
 from __future__ import annotations
@@ -27,18 +27,17 @@ import os
 import shutil
 import signal
 import socket
-import subprocess
 import sys
 import time
-from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, Annotated, Any
+from typing import Annotated, Any
 
 import typer
 
 from cpslam.common.config.cli import DeviceOpt, PresetOpt, SetOpt
+from cpslam.supervisor import ChildFailed, Supervisor
 
-__all__ = ["ChildFailed", "Supervisor", "demo", "frame_slice", "free_port", "scene_data"]
+__all__ = ["demo", "frame_slice", "free_port", "prepare_run_dir", "scene_data"]
 
 logger = logging.getLogger(__name__)
 
@@ -49,85 +48,6 @@ KEYFRAME_EVERY = 10
 """Keyframe interval of the demo (unless --set or the preset asks for fewer frames): the
 demo's frames are every 3rd of the walk, and the presets' 50 would leave 2 keyframes per
 agent, too few for the agents to find each other."""
-
-
-class ChildFailed(RuntimeError):
-    """A supervised process exited when it should not have."""
-
-    def __init__(self, name: str, code: int | None, log: Path, why: str = "") -> None:
-        self.name, self.code, self.log = name, code, log
-        what = why or f"exited with code {code}"
-        super().__init__(f"{name} {what}; its log: {log}\n{_tail(log)}")
-
-
-@dataclass
-class Child:
-    name: str
-    proc: subprocess.Popen
-    log: Path
-    may_exit: bool
-    """True: exit 0 is the normal end (agents); False: any exit is a failure (server)."""
-    stream: IO[bytes]
-
-
-class Supervisor:
-    """Starts processes with their output in ``log_dir/<name>.log`` and watches them."""
-
-    def __init__(self, log_dir: Path, env: dict[str, str] | None = None) -> None:
-        self.log_dir = Path(log_dir)
-        self.env = env
-        self.children: dict[str, Child] = {}
-
-    def __enter__(self) -> Supervisor:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-    def start(self, name: str, argv: list[str], may_exit: bool = True) -> Child:
-        self.log_dir.mkdir(parents=True, exist_ok=True)
-        log = self.log_dir / f"{name}.log"
-        stream = log.open("wb")
-        # Own process group: a Ctrl-C in the terminal reaches only us, and we forward it once
-        # (the server treats a second SIGINT as "exit without finalising").
-        proc = subprocess.Popen(argv, stdout=stream, stderr=subprocess.STDOUT, env=self.env,
-                                stdin=subprocess.DEVNULL, start_new_session=True)
-        child = Child(name, proc, log, may_exit, stream)
-        self.children[name] = child
-        logger.info("started %s (pid %d): %s", name, proc.pid, " ".join(argv))
-        return child
-
-    def running(self, name: str) -> bool:
-        return self.children[name].proc.poll() is None
-
-    def check(self) -> None:
-        """Raise `ChildFailed` for the first child that exited when it should not have."""
-        for child in self.children.values():
-            code = child.proc.poll()
-            if code is not None and (code != 0 or not child.may_exit):
-                raise ChildFailed(child.name, code, child.log)
-
-    def close(self, grace_s: float = 60.0) -> None:
-        """SIGINT to every child still running, then SIGKILL after `grace_s`."""
-        live = [c for c in self.children.values() if c.proc.poll() is None]
-        for child in live:
-            child.proc.send_signal(signal.SIGINT)
-        deadline = time.monotonic() + grace_s
-        try:
-            for child in live:
-                try:
-                    child.proc.wait(max(deadline - time.monotonic(), 0.01))
-                except subprocess.TimeoutExpired:
-                    logger.warning("%s did not stop within %.0f s; killing it", child.name,
-                                   grace_s)
-        except KeyboardInterrupt:
-            logger.warning("second interrupt: killing the children")
-        finally:
-            for child in self.children.values():
-                if child.proc.poll() is None:
-                    child.proc.kill()
-                    child.proc.wait()
-                child.stream.close()
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -412,11 +332,3 @@ def _interrupt(_signum: int, _frame: object) -> None:
 
 def _write_marker(out: Path, info: dict) -> None:
     (out / MARKER).write_text(json.dumps(info, indent=2) + "\n")
-
-
-def _tail(path: Path, lines: int = 15) -> str:
-    try:
-        text = path.read_text(errors="replace").splitlines()
-    except OSError:
-        return ""
-    return "\n".join(f"  | {line}" for line in text[-lines:])

@@ -13,13 +13,12 @@ from typer.testing import CliRunner
 from cpslam.cli import app
 from cpslam.demo import (
     MARKER,
-    ChildFailed,
-    Supervisor,
     frame_slice,
     free_port,
     prepare_run_dir,
     scene_data,
 )
+from cpslam.supervisor import ChildFailed, Supervisor
 
 PY = sys.executable
 
