@@ -287,20 +287,31 @@ class Backend:
                             "loop_id": loop.loop_id})
         return _to_groups(self.federator.merged(group))
 
-    def _optimise(self, group: Group) -> None:
-        t0 = time.perf_counter()
+    def pose_graph(self, groups: list[Group]) -> tuple[PoseGraph, list[LoopRecord],
+                                                        dict[str, Any]]:
+        """The (unoptimised) pose graph of these groups: every member's odometry in its group
+        frame and the accepted loops between members of one group; also those loops and the
+        members' trajectories by agent."""
         graph = PoseGraph.from_config(self.pg_cfg)
-        for m in group.members:
-            traj = agent_trajectory(self.registry.agents[m])
-            if traj is not None:
-                graph.add_trajectory(m, traj, group.T_group_agent[m])
-        loops = [lp for lp in self.loops if lp.accepted and lp.agent_a in group.T_group_agent
-                 and lp.agent_b in group.T_group_agent]
+        trajectories = {}
+        for group in groups:
+            for m in group.members:
+                traj = agent_trajectory(self.registry.agents[m])
+                if traj is not None:
+                    graph.add_trajectory(m, traj, group.T_group_agent[m])
+                    trajectories[m] = traj
+        loops = [lp for lp in self.loops if lp.accepted and lp.agent_a in trajectories
+                 and lp.agent_b in trajectories and self.groups.same_group(lp.agent_a, lp.agent_b)]
         for lp in loops:
             sig_t, sig_r = loop_sigmas(self.pg_cfg.loop_sigma_t, self.pg_cfg.loop_sigma_r,
                                        max(lp.rmse, 0.0), min(max(lp.fitness, 1e-3), 1.0))
             graph.add_loop(lp.agent_a, lp.kf_a, lp.agent_b, lp.kf_b, np.asarray(lp.T_a_b),
                            sigma_t=sig_t, sigma_r=sig_r, loop_id=lp.loop_id)
+        return graph, loops, trajectories
+
+    def _optimise(self, group: Group) -> None:
+        t0 = time.perf_counter()
+        graph, loops, _ = self.pose_graph([group])
         if graph.num_nodes == 0:
             return
         result = graph.optimize()

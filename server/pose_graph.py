@@ -211,6 +211,7 @@ class PoseGraph:
         # Current estimate per node: the initial pose, then the last optimised one, so that a
         # re-run after a new loop starts from the corrected map.
         self._estimate: list[np.ndarray] = []
+        self._initial: list[np.ndarray] = []  # as added, for `reset_estimate`
         self._edges: list[_Edge] = []
         self._loop_ids: set[Hashable] = set()
         self._trajectories: dict[str, AgentTrajectory] = {}
@@ -434,6 +435,11 @@ class PoseGraph:
                     out[i] = result.frame_poses[(agent, frame)]
         return out
 
+    def reset_estimate(self) -> None:
+        """Forget every optimisation: the next `optimize` starts from the initial poses again
+        (to compare graphs that differ in their loops from the same start)."""
+        self._estimate = [T.copy() for T in self._initial]
+
     def export_g2o(self, path: str | Path) -> None:
         """Write the graph (current estimate: optimised if ``optimize`` ran) as g2o SE3:QUAT."""
         names = [f"{a} {kind} {i}" for a, kind, i in self._names]
@@ -455,6 +461,7 @@ class PoseGraph:
         self._keys[name] = len(self._names)
         self._names.append(name)
         self._estimate.append(T.copy())
+        self._initial.append(T.copy())
 
     def _key(self, agent: str, kind: str, node_id: int) -> int:
         name = (agent, kind, int(node_id))

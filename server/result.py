@@ -13,8 +13,8 @@ import numpy as np
 from cpslam.common.field import NeuralPointMap
 from cpslam.common.geometry import compose, invert
 from cpslam.server.fusion import fuse
-from cpslam.server.pose_graph import PoseGraph, loop_sigmas
-from cpslam.server.tracks import agent_trajectory, trajectory_poses
+from cpslam.server.pose_graph import PoseGraph
+from cpslam.server.tracks import trajectory_poses
 
 if TYPE_CHECKING:
     from cpslam.server.backend import Backend
@@ -57,21 +57,7 @@ def finalise_backend(backend: Backend) -> FinalResult:
     """Run the final optimisation and refinement of a back end (see `Backend.finalise`)."""
     t0 = time.perf_counter()
     reg, groups = backend.registry, backend.groups
-    graph = PoseGraph.from_config(backend.pg_cfg)
-    trajectories = {}
-    for group in groups.groups.values():
-        for m in group.members:
-            traj = agent_trajectory(reg.agents[m])
-            if traj is not None:
-                graph.add_trajectory(m, traj, group.T_group_agent[m])
-                trajectories[m] = traj
-    loops = [lp for lp in backend.loops if lp.accepted and lp.agent_a in trajectories
-             and lp.agent_b in trajectories and groups.same_group(lp.agent_a, lp.agent_b)]
-    for lp in loops:
-        sig_t, sig_r = loop_sigmas(backend.pg_cfg.loop_sigma_t, backend.pg_cfg.loop_sigma_r,
-                                   max(lp.rmse, 0.0), min(max(lp.fitness, 1e-3), 1.0))
-        graph.add_loop(lp.agent_a, lp.kf_a, lp.agent_b, lp.kf_b, np.asarray(lp.T_a_b),
-                       sigma_t=sig_t, sigma_r=sig_r, loop_id=lp.loop_id)
+    graph, loops, trajectories = backend.pose_graph(list(groups.groups.values()))
     pg_metrics: dict[str, Any] = {"nodes": graph.num_nodes, "edges": graph.num_edges,
                                   "loops": len(loops)}
     frame_fix: dict[str, dict[int, np.ndarray]] = {}

@@ -115,6 +115,18 @@ def test_false_loop_is_ignored_and_flagged(scene, kernel):
     assert result.loop_chi2["false"] > 100 * CHI2_6DOF_95
 
 
+def test_reset_estimate_starts_again_from_the_initial_poses(scene):
+    gt, _, track, _ = scene
+    graph = build(scene, "none")
+    first = graph.optimize()
+    assert rmse(np.stack([graph.estimate("a", i) for i in range(N_KF)]), gt) < rmse(track, gt)
+    graph.reset_estimate()
+    np.testing.assert_allclose(np.stack([graph.estimate("a", i) for i in range(N_KF)]), track)
+    again = graph.optimize()
+    assert again.error_before == pytest.approx(first.error_before)
+    np.testing.assert_allclose(keyframe_poses(again), keyframe_poses(first), atol=1e-9)
+
+
 def test_false_loop_bends_the_map_without_a_robust_kernel(scene):
     gt = scene[0]
     clean = keyframe_poses(build(scene, "none").optimize())
