@@ -26,14 +26,10 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _data(scene: str, agents: int, frames: int, loop: bool, seed: int) -> list[Path]:
-    from cpslam.common.synth import generate
+    from cpslam.demo import scene_data
 
-    name = f"{scene}-{agents}x{frames}{'-loop' if loop else ''}-s{seed}"
-    out = ROOT / "runs" / "bench-data" / name
-    if (out / "scene.json").is_file():
-        return sorted(p for p in out.glob("agent_*") if p.is_dir())
-    return generate(out, scene=scene, agents=agents, frames=frames, loop=loop, seed=seed,
-                    overwrite=True).agent_dirs
+    return scene_data(ROOT / "runs" / "bench-data", scene, agents, frames, 320, 240, seed,
+                      show_progress=False, loop=loop)
 
 
 def _errors(T: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
