@@ -40,6 +40,20 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             item.add_marker(skip_data)
 
 
+@pytest.fixture(autouse=True)
+def _one_torch_thread():
+    """Every test starts with one torch thread (see pytest_configure), whatever an earlier
+    in-process command set."""
+    try:
+        import torch
+    except ImportError:  # pragma: no cover
+        yield
+        return
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(1)
+
+
 @pytest.fixture(scope="session")
 def kitchen_path() -> Path:
     """The first 300 frames of 7-Scenes red kitchen (skips when absent)."""

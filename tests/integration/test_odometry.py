@@ -21,15 +21,6 @@ from cpslam.common.eval import evaluate_ate
 pytest.importorskip("open3d")  # the synthetic renderer
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """One torch thread: on a shared 2-core machine two threads ran these ops ~8x slower."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 @pytest.fixture(scope="module")
 def sequence_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     from cpslam.common.synth import generate

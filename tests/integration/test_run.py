@@ -7,21 +7,12 @@ import json
 from pathlib import Path
 
 import pytest
-import torch
 import typer
 from typer.testing import CliRunner
 
 from cpslam.run import run
 
 pytest.importorskip("open3d")  # the synthetic renderer
-
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
 
 
 def _invoke(args: list[str]) -> None:

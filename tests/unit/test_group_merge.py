@@ -48,15 +48,6 @@ AGENTS = ("a", "b")
 SAMPLER = dict(n_near=8, n_uniform=2)
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """One torch thread: on a shared 2-core machine two threads ran these ops ~8x slower."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 def small_decoders() -> Decoders:
     return Decoders(feature_dim=F, pe_offset=2, c_hidden=16, c_out=16, g_hidden=16,
                     u_hidden=16, u_layers=1, seed=0)

@@ -32,14 +32,6 @@ from cpslam.protocol import (
 INTR = Intrinsics(fx=64.0, fy=64.0, cx=39.5, cy=29.5, width=80, height=60)
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 def _frame(i: int) -> RGBDFrame:
     """A textured wall 2 m ahead; the camera slides 1 mm per frame."""
     v, u = np.mgrid[0:60, 0:80]

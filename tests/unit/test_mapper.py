@@ -13,16 +13,6 @@ from cpslam.common.field import Decoders, FeatureCNN, NeuralPointMap, RaySampler
 from cpslam.common.field.grid import grid_winners
 from cpslam.common.geometry import se3_exp
 
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """One torch thread: on a shared 2-core machine two threads ran these ops ~8x slower."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 INTR = Intrinsics(fx=64.0, fy=64.0, cx=39.5, cy=29.5, width=80, height=60)
 CELL = 0.1
 

@@ -26,15 +26,6 @@ B_FRAMES = (0, 15, 30)  # agent b's keyframes 0, 1, 2
 A_FRAME = 22  # the loop keyframe, between b's keyframes 1 and 2
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """One torch thread: on a shared 2-core machine two threads ran these ops ~8x slower."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 @dataclass(frozen=True)
 class Cand:
     agent_a: str

@@ -13,16 +13,6 @@ from cpslam.common.field import Decoders, FeatureCNN, NeuralPointMap, RaySampler
 from cpslam.common.field.tracking import Tracker, outlier_mask, sample_pixels
 from cpslam.common.geometry import se3_exp
 
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """One torch thread: on a shared 2-core machine two threads ran these ops ~8x slower."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 BOX_LO = np.array([-1.5, -1.2, -1.0])
 BOX_HI = np.array([1.5, 1.2, 2.0])
 
