@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 import torch
+from voxel_place import voxel_descriptor
 
 from cpslam.common.config.collab import (
     FederationConfig,
@@ -102,22 +103,11 @@ def scenario():
         for kf_id, f in enumerate(kfs):
             img = renderer.render(T_gt[f])
             images[kf_id] = (img.rgb, img.depth.astype(np.float32))
-            descs[kf_id] = _voxel_descriptor(img.depth, intr, T_gt[f])
+            descs[kf_id] = voxel_descriptor(img.depth, intr, T_gt[f])
         agents[agent] = dict(kfs=kfs, reported=reported, images=images, descs=descs,
                              T_world_own=T_gt[0])
     T_0_1 = compose(invert(truth[0][0]), truth[1][0])  # agent 1's world in agent 0's
     return dict(intr=intr, agents=agents, cnn=cnn, T_0_1=T_0_1)
-
-
-def _voxel_descriptor(depth, intr, T_world_cam, dim=512, voxel=0.5):
-    v, u = np.nonzero(depth > 0)
-    z = depth[v, u]
-    xyz = np.stack(((u - intr.cx) / intr.fx * z, (v - intr.cy) / intr.fy * z, z), 1)
-    xyz = xyz @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
-    cells = np.floor(xyz / voxel).astype(np.int64)
-    bins = (cells * np.array([73856093, 19349663, 83492791])).sum(1) % dim
-    d = np.sqrt(np.bincount(bins, minlength=dim).astype(np.float32))
-    return d / np.linalg.norm(d)
 
 
 def agent_messages(scenario, agent: str, seq0: int = 0):
