@@ -9,7 +9,6 @@ true overlap); the database is a plain cosine search. Registration is the real o
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
 
 import numpy as np
 import pytest
@@ -36,6 +35,7 @@ from cpslam.protocol import (
 )
 from cpslam.server.backend import Backend
 from cpslam.server.export import export_run
+from cpslam.server.loops import LoopCandidate
 
 F = 8
 KF_EVERY = 50
@@ -50,16 +50,6 @@ def small_decoders(seed: int = 0) -> Decoders:
                     u_hidden=16, u_layers=1, seed=seed)
 
 
-@dataclass(frozen=True)
-class Cand:
-    agent_a: str
-    kf_a: int
-    agent_b: str
-    kf_b: int
-    score: float
-    kind: str
-
-
 class CosineDatabase:
     """Inter-agent cosine search with the two thresholds (stands in for server/loops.py)."""
 
@@ -70,13 +60,13 @@ class CosineDatabase:
     def add(self, agent: str, kf: int, descriptor: np.ndarray, group: str) -> None:
         self.entries.append((agent, kf, descriptor))
 
-    def query(self, agent: str, kf: int, descriptor: np.ndarray) -> list[Cand]:
+    def query(self, agent: str, kf: int, descriptor: np.ndarray) -> list[LoopCandidate]:
         out = []
         for other, okf, d in self.entries:
             score = float(d @ descriptor)
             if other != agent and score >= self.coarse:
                 kind = "fine" if score >= self.fine else "coarse"
-                out.append(Cand(other, okf, agent, kf, score, kind))
+                out.append(LoopCandidate(other, okf, agent, kf, score, kind))
         return sorted(out, key=lambda c: -c.score)[:1]
 
 
