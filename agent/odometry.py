@@ -137,6 +137,7 @@ class Odometry:
         chunk = f.chunk_rays
         tracker = Tracker(
             intrinsics, sampler_from_config(f), iters=tr.iters, n_pixels=tr.n_pixels, lr=tr.lr,
+            lr_end_factor=tr.lr_end_factor,
             color_weight=tr.color_weight, err_lo=tr.outlier_err_lo, err_hi=tr.outlier_err_hi,
             var_factor=tr.outlier_var_factor, keep_best=tr.keep_best,
             early_stop_tol=tr.early_stop_tol, k=f.k_neighbors, radius=f.radius,

@@ -12,8 +12,14 @@ a mapping step: one round of optimisation iterations) and per optimisation itera
 paper's figures on an RTX 3090 (tracking 0.30 s per frame, mapping 10.1 s per step) are
 printed next to ours; compare them with the `paper` preset on a GPU (`--device cuda`).
 
+Both sequences also get the relative pose error over 1 and 10 frames (RPE: jitter and local
+drift, independent of the alignment). One seed is one sample: `--seeds 0 1 2` runs every
+sequence once per seed (`run.seed`: pixel draws and ray jitter) and adds the mean and the
+worst, and `--jobs 2` runs two of those at once (each on one core; timings then include the
+other job's load).
+
 Usage: python bench/odometry.py [--preset cpu] [--device auto|cpu|cuda[:i]] [--frames N]
-       [--only synth|real] [--json PATH]
+       [--only synth|real] [--seeds S ...] [--jobs N] [--set a.b=v ...] [--json PATH]
 """
 
 from __future__ import annotations
@@ -24,6 +30,8 @@ import os
 import platform
 import sys
 import time
+from concurrent.futures import ProcessPoolExecutor
+from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
@@ -34,7 +42,7 @@ from cpslam.common.camera import Intrinsics, resize_rgbd
 from cpslam.common.config import load_config
 from cpslam.common.datasets import open_sequence
 from cpslam.common.device import resolve_device
-from cpslam.common.eval import evaluate_ate
+from cpslam.common.eval import evaluate_ate, evaluate_rpe
 
 REPO = Path(__file__).resolve().parents[1]
 SYNTH_DIR = REPO / "runs" / "bench-data" / "room-loop-300-320x240"
@@ -49,27 +57,44 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=300, help="frames of each sequence")
     parser.add_argument("--only", choices=("synth", "real"), default=None)
     parser.add_argument("--set", nargs="*", default=[], help="config overrides a.b=value")
+    parser.add_argument("--seeds", type=int, nargs="*", default=None,
+                        help="run.seed values, one run each (default: the config's)")
+    parser.add_argument("--jobs", type=int, default=1, help="runs at once (processes)")
     parser.add_argument("--json", type=Path, default=None, help="also write the JSON here")
     parser.add_argument("--device", default="cpu", help="auto, cpu, cuda or cuda:N")
     args = parser.parse_args()
     cfg = load_config(args.preset, overrides=args.set, env={})
     torch.set_num_threads(cfg.run.num_threads or 1)
     device = resolve_device(args.device)
+    seeds = args.seeds or [cfg.run.seed]
     report: dict = {
         "machine": {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),
                     "torch_threads": torch.get_num_threads(), "torch": torch.__version__,
                     "load_average_1min_at_start": round(os.getloadavg()[0], 2)},
         "preset": args.preset, "overrides": args.set, "frames": args.frames, "device": device,
+        "seeds": seeds, "jobs": args.jobs,
         "gpu": torch.cuda.get_device_name(device) if device.startswith("cuda") else None,
         "paper_rtx3090": PAPER,
     }
-    if args.only in (None, "synth"):
-        report["synthetic"] = bench_synthetic(cfg, args.frames, device)
-    if args.only in (None, "real"):
-        if KITCHEN.is_dir():
-            report["real"] = bench_real(cfg, args.frames, device)
-        else:
-            report["real"] = {"skipped": f"no data at {KITCHEN}"}
+    kinds = [k for k in ("synth", "real") if args.only in (None, k)]
+    if "real" in kinds and not KITCHEN.is_dir():
+        report["real"] = {"skipped": f"no data at {KITCHEN}"}
+        kinds.remove("real")
+    if "synth" in kinds:
+        _ensure_synthetic()
+    jobs = [(args.preset, args.set, kind, seed, args.frames, device)
+            for kind in kinds for seed in seeds]
+    if args.jobs > 1 and len(jobs) > 1:
+        with ProcessPoolExecutor(args.jobs, mp_context=get_context("spawn")) as pool:
+            results = list(pool.map(_run_job, jobs))
+    else:
+        results = [_run_job(job) for job in jobs]
+    for kind in kinds:
+        runs = [r for job, r in zip(jobs, results, strict=True) if job[2] == kind]
+        name = "synthetic" if kind == "synth" else "real"
+        report[name] = _summarise(runs, seeds)
+        if kind == "real":
+            _compare_open3d(report[name], cfg, args.frames)
     print_table(report)
     text = json.dumps(report, indent=2)
     print(text)
@@ -77,27 +102,53 @@ def main() -> None:
         args.json.write_text(text + "\n")
 
 
-def bench_synthetic(cfg, frames: int, device: str) -> dict:
+def _ensure_synthetic() -> None:
     if not (SYNTH_DIR / "agent_0" / "traj.txt").is_file():
         from cpslam.common.synth import generate
 
         generate(SYNTH_DIR, scene="room", frames=300, width=320, height=240, loop=True,
                  overwrite=True)
-    seq = open_sequence(SYNTH_DIR / "agent_0", frames=slice(0, frames))
-    # The synthetic data is already 320x240: process it at its own size.
-    return run_odometry(cfg, seq, factor=1.0, aligns=("origin", "se3"), device=device)
 
 
-def bench_real(cfg, frames: int, device: str) -> dict:
+def _run_job(job: tuple) -> dict:
+    """One odometry run (in a worker process when --jobs > 1)."""
+    preset, overrides, kind, seed, frames, device = job
+    cfg = load_config(preset, overrides=[*overrides, f"run.seed={seed}"], env={})
+    torch.set_num_threads(cfg.run.num_threads or 1)
+    if kind == "synth":
+        seq = open_sequence(SYNTH_DIR / "agent_0", frames=slice(0, frames))
+        # The synthetic data is already 320x240: process it at its own size.
+        return run_odometry(cfg, seq, factor=1.0, aligns=("origin", "se3"), device=device)
     seq = open_sequence(KITCHEN, frames=slice(0, frames))
-    out = run_odometry(cfg, seq, factor=cfg.camera.downscale, aligns=("se3",), device=device)
+    return run_odometry(cfg, seq, factor=cfg.camera.downscale, aligns=("se3",), device=device)
+
+
+def _summarise(runs: list[dict], seeds: list[int]) -> dict:
+    """The first seed's run at the top level (as with one seed), every seed's accuracy under
+    "per_seed", and their mean and worst."""
+    out = dict(runs[0])
+    keys = [k for k in runs[0] if k.startswith(("ate_", "rpe"))]
+    out["per_seed"] = [{"seed": seed, **{k: r[k] for k in keys}, "mean_s_per_frame":
+                        r["mean_s_per_frame"]} for seed, r in zip(seeds, runs, strict=True)]
+    if len(runs) > 1:
+        out["mean_over_seeds"] = {k: round(float(np.mean([r[k] for r in runs])), 3)
+                                  for k in [*keys, "mean_s_per_frame"]}
+        out["worst_over_seeds"] = {k: max(r[k] for r in runs) for k in keys}
+    return out
+
+
+def _compare_open3d(out: dict, cfg, frames: int) -> None:
+    seq = open_sequence(KITCHEN, frames=slice(0, frames))
     out["open3d"] = {}
     for factor in sorted({cfg.camera.downscale, 1.0}):
         size = "x".join(map(str, _size(seq.intrinsics, factor)))
         out["open3d"][size] = open3d_odometry(seq, factor, cfg.camera.depth_max)
     best = min(v["ate_se3_cm"] for v in out["open3d"].values())
     out["ratio_ours_over_best_open3d"] = round(out["ate_se3_cm"] / best, 3)
-    return out
+    if "mean_over_seeds" in out:
+        out["ratio_mean_over_best_open3d"] = round(out["mean_over_seeds"]["ate_se3_cm"] / best, 3)
+        out["ratio_worst_over_best_open3d"] = round(
+            out["worst_over_seeds"]["ate_se3_cm"] / best, 3)
 
 
 def run_odometry(cfg, seq, factor: float, aligns: tuple[str, ...], device: str = "cpu") -> dict:
@@ -126,6 +177,7 @@ def run_odometry(cfg, seq, factor: float, aligns: tuple[str, ...], device: str =
     for align in aligns:
         ate = evaluate_ate(seq.timestamps, seq.gt_poses(), stamps, poses, align=align)
         out[f"ate_{align}_cm"] = round(100 * ate.rmse, 3)
+    out.update(_rpe(seq, stamps, poses))
     out.update({
         "mean_s_per_frame": round(total / len(seq), 3),
         "tracking_s_per_frame": round(float(np.mean(track[1:])), 3),
@@ -174,8 +226,19 @@ def open3d_odometry(seq, factor: float, depth_max: float) -> dict:
     seconds = time.perf_counter() - start
     ate = evaluate_ate(seq.timestamps, seq.gt_poses(), seq.timestamps, np.stack(poses),
                        align="se3")
-    return {"ate_se3_cm": round(100 * ate.rmse, 3), "failures": failures,
+    return {"ate_se3_cm": round(100 * ate.rmse, 3),
+            **_rpe(seq, seq.timestamps, np.stack(poses)), "failures": failures,
             "mean_s_per_frame": round(seconds / len(seq), 3)}
+
+
+def _rpe(seq, stamps: np.ndarray, poses: np.ndarray) -> dict:
+    """Mean relative pose error over 1 and 10 frames, in mm and degrees."""
+    out = {}
+    for delta in (1, 10):
+        rpe = evaluate_rpe(seq.timestamps, seq.gt_poses(), stamps, poses, delta=delta)
+        out[f"rpe{delta}_mm"] = round(1000 * rpe.trans_mean, 2)
+        out[f"rpe{delta}_deg"] = round(rpe.rot_mean_deg, 3)
+    return out
 
 
 def _size(intr: Intrinsics, factor: float) -> tuple[int, int]:
@@ -184,24 +247,39 @@ def _size(intr: Intrinsics, factor: float) -> tuple[int, int]:
 
 
 def print_table(report: dict) -> None:
-    rows = [("sequence", "ATE origin cm", "ATE se3 cm", "s/frame", "track s/frame",
-             "map s/call", "map s/iter", "points")]
+    rows = [("sequence", "ATE origin cm", "ATE se3 cm", "RPE1 mm/deg", "RPE10 mm/deg",
+             "s/frame", "track s/frame", "map s/call", "map s/iter", "points")]
+
+    def accuracy(r: dict) -> tuple[str, ...]:
+        return (str(r.get("ate_origin_cm", "-")), str(r["ate_se3_cm"]),
+                f"{r['rpe1_mm']}/{r['rpe1_deg']}", f"{r['rpe10_mm']}/{r['rpe10_deg']}")
+
     for name in ("synthetic", "real"):
         r = report.get(name)
         if not r or "skipped" in r:
             continue
-        rows.append((f"{name} ({r['resolution']}, cpslam)", str(r.get("ate_origin_cm", "-")),
-                     str(r["ate_se3_cm"]), str(r["mean_s_per_frame"]),
-                     str(r["tracking_s_per_frame"]), str(r["mapping_s_per_call"]),
-                     str(r.get("mapping_s_per_iter")), str(r["points"])))
+        rows.append((f"{name} ({r['resolution']}, cpslam, seed {report['seeds'][0]})",
+                     *accuracy(r), str(r["mean_s_per_frame"]), str(r["tracking_s_per_frame"]),
+                     str(r["mapping_s_per_call"]), str(r.get("mapping_s_per_iter")),
+                     str(r["points"])))
+        for run in r["per_seed"][1:]:
+            rows.append((f"{name} cpslam, seed {run['seed']}", *accuracy(run),
+                         str(run["mean_s_per_frame"]), "", "", "", ""))
+        if "mean_over_seeds" in r:
+            m = r["mean_over_seeds"]
+            rows.append((f"{name} cpslam, mean of {len(r['per_seed'])} seeds", *accuracy(m),
+                         str(m["mean_s_per_frame"]), "", "", "", ""))
         for size, o in r.get("open3d", {}).items():
-            rows.append((f"{name} ({size}, Open3D hybrid)", "-", str(o["ate_se3_cm"]),
+            rows.append((f"{name} ({size}, Open3D hybrid)", "-", *accuracy(o)[1:],
                          str(o["mean_s_per_frame"]), "-", "-", "-", "-"))
-        if "ratio_ours_over_best_open3d" in r:
-            rows.append((f"{name}: ATE ratio cpslam / best Open3D",
-                         str(r["ratio_ours_over_best_open3d"]), "", "", "", "", "", ""))
+        for key, label in (("ratio_ours_over_best_open3d", "first seed"),
+                           ("ratio_mean_over_best_open3d", "mean"),
+                           ("ratio_worst_over_best_open3d", "worst seed")):
+            if key in r:
+                rows.append((f"{name}: ATE ratio cpslam ({label}) / best Open3D", "",
+                             str(r[key]), "", "", "", "", "", "", ""))
     paper = report["paper_rtx3090"]
-    rows.append(("CP-SLAM paper (RTX 3090, paper preset)", "-", "-", "-",
+    rows.append(("CP-SLAM paper (RTX 3090, paper preset)", "-", "-", "-", "-", "-",
                  str(paper["tracking_s_per_frame"]), str(paper["mapping_s_per_call"]), "-", "-"))
     widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]
     for row in rows:

@@ -132,6 +132,9 @@ class TrackingConfig(Section):
     """Pixels sampled per step (M2)."""
     lr: PositiveFloat = 0.0015
     """Adam learning rate of the se(3) pose increment xi (T = T_init @ exp(xi), camera frame)."""
+    lr_end_factor: float = Field(default=1.0, gt=0.0, le=1.0)
+    """The learning rate decays exponentially over a frame's steps to lr * lr_end_factor at
+    the last one (1 = constant, the paper)."""
     init: Literal["zero_motion", "constant_velocity"] = "zero_motion"
     """Initial pose of a new frame: the previous pose (the paper) or a constant-velocity guess."""
     color_weight: NonNegativeFloat = 0.0

@@ -1,4 +1,5 @@
-"""Trajectory evaluation: association, alignment and absolute trajectory error (ATE).
+"""Trajectory evaluation: association, alignment, absolute trajectory error (ATE) and relative
+pose error (RPE).
 
 Plots live in ``cpslam.common.eval.plot`` and the ``cpslam eval ate`` command in
 ``cpslam.common.eval.cli``; both are left out here so importing this package stays light.
@@ -13,6 +14,7 @@ from cpslam.common.eval.ate import (
     evaluate_ate,
     joint_ate,
 )
+from cpslam.common.eval.rpe import RpeResult, evaluate_rpe
 from cpslam.common.eval.source import load_trajectory, locate_trajectory
 
 __all__ = [
@@ -20,10 +22,12 @@ __all__ = [
     "DEFAULT_MAX_DT",
     "AteResult",
     "JointAteResult",
+    "RpeResult",
     "align",
     "apply_alignment",
     "associate",
     "evaluate_ate",
+    "evaluate_rpe",
     "joint_ate",
     "load_trajectory",
     "locate_trajectory",

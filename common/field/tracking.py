@@ -71,6 +71,8 @@ class Tracker:
         iters: optimisation steps per frame.
         n_pixels: pixels with valid depth drawn per frame (M2).
         lr: Adam learning rate of the se(3) increment.
+        lr_end_factor: the learning rate decays exponentially to lr * lr_end_factor at the
+            last step (1 = constant, the paper).
         color_weight: weight of a colour L1 term (0 = depth only, the paper).
         err_lo, err_hi, var_factor: the outlier mask (see the module docstring).
         keep_best: return the lowest-loss pose instead of the last one.
@@ -89,6 +91,7 @@ class Tracker:
         iters: int = 100,
         n_pixels: int = 1500,
         lr: float = 0.0015,
+        lr_end_factor: float = 1.0,
         color_weight: float = 0.0,
         err_lo: float = 0.1,
         err_hi: float = 10.0,
@@ -104,6 +107,8 @@ class Tracker:
         if iters < 1 or n_pixels < 1 or lr <= 0:
             raise ValueError(f"Tracker: need iters >= 1, n_pixels >= 1, lr > 0; got {iters}, "
                              f"{n_pixels}, {lr}")
+        if not 0 < lr_end_factor <= 1:
+            raise ValueError(f"Tracker: need 0 < lr_end_factor <= 1, got {lr_end_factor}")
         if not 0 <= err_lo < err_hi or var_factor <= 0:
             raise ValueError(f"Tracker: need 0 <= err_lo < err_hi and var_factor > 0, got "
                              f"{err_lo}, {err_hi}, {var_factor}")
@@ -112,6 +117,7 @@ class Tracker:
         self.iters = iters
         self.n_pixels = n_pixels
         self.lr = lr
+        self.lr_end_factor = lr_end_factor
         self.color_weight = color_weight
         self.err_lo, self.err_hi, self.var_factor = err_lo, err_hi, var_factor
         self.keep_best = keep_best
@@ -157,6 +163,8 @@ class Tracker:
         best = (math.inf, xi.detach().clone(), 0)
         try:
             for it in range(self.iters):
+                optimiser.param_groups[0]["lr"] = self.lr * self.lr_end_factor ** (
+                    it / max(self.iters - 1, 1))
                 T = T0 @ torch_se3_exp(xi)
                 rays_o, rays_d = camera_rays(self.intrinsics, T, u, v)
                 if cached is None or _motion_bound(xi.detach() - cached[0], t_far) \

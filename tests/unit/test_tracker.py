@@ -146,3 +146,19 @@ def test_sample_pixels_only_valid_depth() -> None:
     assert len(u) == 50 and bool((u < 12).all() and (v < 10).all())
     with pytest.raises(ValueError, match="valid depth"):
         sample_pixels(torch.zeros(4, 4), 5, torch.Generator())
+
+
+def test_lr_decay_settles_a_too_large_step(fitted: dict) -> None:
+    T_true = fitted["T_true"]
+    T_init = T_true @ se3_exp(np.array([0.012, 0.010, -0.012, 0.02, -0.02, 0.01]))
+    # A step too large to settle at a constant rate: the last pose wanders centimetres off.
+    args = {"lr": 0.015, "iters": 40, "keep_best": False}
+    wild = _track(fitted, _tracker(fitted, **args), T_init)
+    settled = _track(fitted, _tracker(fitted, lr_end_factor=0.03, **args), T_init)
+    t_wild, _ = _errors(wild.T_world_cam, T_true)
+    t_settled, r_settled = _errors(settled.T_world_cam, T_true)
+    assert t_settled < 0.008 and r_settled < 0.5, (t_settled, r_settled)
+    assert t_wild > 2 * t_settled, (t_wild, t_settled)
+    assert np.std(settled.losses[-5:]) < np.std(wild.losses[-5:])
+    with pytest.raises(ValueError, match="lr_end_factor"):
+        _tracker(fitted, lr_end_factor=0.0)
