@@ -133,8 +133,7 @@ class TrackingConfig(Section):
     lr: PositiveFloat = 0.0015
     """Adam learning rate of the se(3) pose increment xi (T = T_init @ exp(xi), camera frame)."""
     lr_end_factor: float = Field(default=1.0, gt=0.0, le=1.0)
-    """The learning rate decays exponentially over a frame's steps to lr * lr_end_factor at
-    the last one (1 = constant, the paper)."""
+    """Exponential decay of the rate over a frame's steps to lr * this at the last (1 = none)."""
     init: Literal["zero_motion", "constant_velocity"] = "zero_motion"
     """Initial pose of a new frame: the previous pose (the paper) or a constant-velocity guess."""
     color_weight: NonNegativeFloat = 0.0
