@@ -1,4 +1,5 @@
-"""``cpslam eval ate``: score an estimated trajectory against ground truth."""
+"""``cpslam eval ate``: score an estimated trajectory against ground truth (ATE, and with
+``--rpe`` the relative pose error over given frame spans)."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from rich.table import Table
 
 from cpslam.common.datasets.cli import FormatOpt, FramesOpt
 from cpslam.common.eval.ate import DEFAULT_MAX_DT, AteResult, evaluate_ate
+from cpslam.common.eval.rpe import RpeResult, evaluate_rpe
 from cpslam.common.eval.source import load_trajectory, locate_trajectory
 from cpslam.common.trajectory import Trajectory
 
@@ -65,6 +67,13 @@ def ate(
     plot: Annotated[
         Path | None, typer.Option("--plot", help="Write a PNG: top view and error over time.")
     ] = None,
+    rpe: Annotated[
+        list[int] | None,
+        typer.Option(
+            "--rpe", min=1, help="Also the relative pose error over this many frames "
+            "(repeat for several, e.g. --rpe 1 --rpe 10).", show_default=False,
+        ),
+    ] = None,
 ) -> None:
     """Absolute trajectory error (ATE) of an estimate against ground truth, in centimetres.
 
@@ -81,6 +90,8 @@ def ate(
       cpslam eval ate --gt groundtruth.tum --est runs/apt/agent_1/trajectory.tum --align sim3
 
       cpslam eval ate --gt data/office --format tum --est runs/office --json ate.json --plot ate.png
+
+      cpslam eval ate --gt ../shared/data/7scenes-kitchen-0-299 --est runs/kitchen --rpe 1 --rpe 10
     """
     try:
         gt_kind, gt_file = locate_trajectory(gt)
@@ -102,14 +113,18 @@ def ate(
             gt_name=str(gt_file),
             est_name=str(est_file),
         )
+        rpes = [evaluate_rpe(gt_traj.stamps, gt_traj.poses, est_traj.stamps, est_traj.poses,
+                             delta=delta, max_dt=max_dt) for delta in sorted(set(rpe or []))]
     except (OSError, ValueError) as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(code=2) from exc
 
-    _print_table(result, gt_file, est_file)
+    _print_table(result, gt_file, est_file, rpes)
     try:
         if json_out is not None:
             record = {"gt": str(gt_file), "est": str(est_file), **result.to_dict()}
+            if rpes:
+                record["rpe"] = [r.to_dict() for r in rpes]
             json_out.parent.mkdir(parents=True, exist_ok=True)
             json_out.write_text(json.dumps(record, indent=2) + "\n")
             typer.echo(f"wrote {json_out}")
@@ -131,7 +146,8 @@ def _load(path: Path, kind: str, fmt: str | None, frames: str | None) -> Traject
     return load_trajectory(path)
 
 
-def _print_table(result: AteResult, gt_file: Path, est_file: Path) -> None:
+def _print_table(result: AteResult, gt_file: Path, est_file: Path,
+                 rpes: list[RpeResult]) -> None:
     table = Table(title="Absolute trajectory error", show_header=False, title_justify="left")
     table.add_column("quantity", style="bold")
     table.add_column("value")
@@ -149,4 +165,8 @@ def _print_table(result: AteResult, gt_file: Path, est_file: Path) -> None:
     table.add_row("median", f"{100.0 * result.median:.2f} cm")
     table.add_row("max", f"{100.0 * result.max:.2f} cm")
     table.add_row("rotation RMSE", f"{result.rot_rmse_deg:.2f} deg")
+    for r in rpes:
+        table.add_row(f"RPE over {r.delta} frame{'s' if r.delta > 1 else ''}",
+                      f"{1000.0 * r.trans_mean:.2f} mm, {r.rot_mean_deg:.3f} deg mean "
+                      f"({r.pairs} pairs)")
     Console().print(table)

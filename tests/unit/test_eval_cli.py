@@ -193,3 +193,19 @@ def test_top_view_axes_picks_largest_extent() -> None:
     xyz[:, 1] = np.linspace(0, 0.1, 10)
     xyz[:, 2] = np.linspace(0, 5, 10)
     assert top_view_axes(xyz) == (0, 2)
+
+
+def test_cli_rpe_rows_and_json(tmp_path: Path, app: typer.Typer) -> None:
+    gt, run = make_pair(tmp_path)
+    out_json = tmp_path / "ate.json"
+    result = CliRunner().invoke(app, ["ate", "--gt", str(gt), "--est", str(run), "--rpe", "10",
+                                      "--rpe", "1", "--json", str(out_json)])
+    assert result.exit_code == 0, result.output
+    assert "RPE over 1 frame" in result.output and "RPE over 10 frames" in result.output
+    record = json.loads(out_json.read_text())
+    assert [r["delta"] for r in record["rpe"]] == [1, 10]
+    assert [r["pairs"] for r in record["rpe"]] == [59, 50]
+    assert 0.005 < record["rpe"][0]["trans_mean_m"] < 0.05  # the 1 cm position noise
+    too_long = CliRunner().invoke(app, ["ate", "--gt", str(gt), "--est", str(run),
+                                        "--rpe", "60"])
+    assert too_long.exit_code == 2 and "need more than delta = 60" in too_long.output
