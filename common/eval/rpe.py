@@ -14,7 +14,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cpslam.common.eval.ate import DEFAULT_MAX_DT, associate, rotation_angle_deg
+from cpslam.common.eval.ate import (
+    DEFAULT_MAX_DT,
+    _check_trajectory,
+    associate,
+    rotation_angle_deg,
+)
 
 __all__ = ["RpeResult", "evaluate_rpe"]
 
@@ -49,21 +54,17 @@ def evaluate_rpe(
     max_dt: float = DEFAULT_MAX_DT,
 ) -> RpeResult:
     """RPE of ``est_poses`` against ``gt_poses`` (both ``T_world_cam [N, 4, 4]``) over
-    ``delta`` associated frames. Raises ValueError when fewer than delta + 1 poses associate."""
+    ``delta`` associated frames. Inputs are checked as for ATE (shapes, finite values); raises
+    ValueError when fewer than delta + 1 poses associate."""
     if delta < 1:
         raise ValueError(f"evaluate_rpe: delta must be >= 1, got {delta}")
-    for name, poses, stamps in (("ground truth", gt_poses, gt_stamps),
-                                ("estimate", est_poses, est_stamps)):
-        poses = np.asarray(poses)
-        if poses.ndim != 3 or poses.shape[1:] != (4, 4) or len(poses) != len(stamps):
-            raise ValueError(f"evaluate_rpe: {name} poses must be [N, 4, 4] with one stamp "
-                             f"each, got {poses.shape} and {len(stamps)} stamps")
+    gt_stamps, gt_poses = _check_trajectory((gt_stamps, gt_poses), "ground truth")
+    est_stamps, est_poses = _check_trajectory((est_stamps, est_poses), "estimate")
     est_idx, gt_idx = associate(est_stamps, gt_stamps, max_dt)
     if len(est_idx) <= delta:
         raise ValueError(f"evaluate_rpe: {len(est_idx)} poses associate within {max_dt} s, "
                          f"need more than delta = {delta}")
-    P = np.asarray(est_poses, dtype=np.float64)[est_idx]
-    G = np.asarray(gt_poses, dtype=np.float64)[gt_idx]
+    P, G = est_poses[est_idx], gt_poses[gt_idx]
     P_rel = np.linalg.inv(P[:-delta]) @ P[delta:]
     G_rel = np.linalg.inv(G[:-delta]) @ G[delta:]
     E = np.linalg.inv(G_rel) @ P_rel

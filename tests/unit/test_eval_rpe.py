@@ -50,7 +50,7 @@ def test_bad_input_is_named() -> None:
         evaluate_rpe(stamps, gt, stamps, gt, delta=0)
     with pytest.raises(ValueError, match="need more than delta = 5"):
         evaluate_rpe(stamps, gt, stamps, gt, delta=5)
-    with pytest.raises(ValueError, match=r"estimate poses must be \[N, 4, 4\]"):
+    with pytest.raises(ValueError, match=r"estimate: poses must be \[N, 4, 4\]"):
         evaluate_rpe(stamps, gt, stamps, gt[:, :3], delta=1)
 
 
