@@ -141,14 +141,14 @@ class Odometry:
             color_weight=tr.color_weight, err_lo=tr.outlier_err_lo, err_hi=tr.outlier_err_hi,
             var_factor=tr.outlier_var_factor, keep_best=tr.keep_best,
             early_stop_tol=tr.early_stop_tol, k=f.k_neighbors, radius=f.radius,
-            backend=f.neighbour_backend, chunk=chunk,
+            backend=f.neighbour_backend, chunk=chunk, pixel_sampling=tr.pixel_sampling,
         )
         mapper = Mapper(
             sampler_from_config(f), lr_decoders=mp.lr_decoders, lr_features=mp.lr_features,
             feature_lr_decay=mp.feature_lr_decay, feature_lr_decay_steps=mp.feature_lr_decay_steps,
             color_weight=mp.color_weight, patch_size=f.patch_size,
             add_points_depth_err=mp.add_points_depth_err, k=f.k_neighbors, radius=f.radius,
-            backend=f.neighbour_backend, chunk=chunk,
+            backend=f.neighbour_backend, chunk=chunk, current_share=mp.current_share,
         )
         return cls(
             intrinsics,

@@ -134,6 +134,8 @@ class TrackingConfig(Section):
     """Adam learning rate of the se(3) pose increment xi (T = T_init @ exp(xi), camera frame)."""
     lr_end_factor: float = Field(default=1.0, gt=0.0, le=1.0)
     """Exponential decay of the rate over a frame's steps to lr * this at the last (1 = none)."""
+    pixel_sampling: Literal["uniform", "stratified"] = "uniform"
+    """How a frame's pixels are drawn: independently (the paper) or one per cell of a grid."""
     init: Literal["zero_motion", "constant_velocity"] = "zero_motion"
     """Initial pose of a new frame: the previous pose (the paper) or a constant-velocity guess."""
     color_weight: NonNegativeFloat = 0.0
@@ -180,6 +182,8 @@ class MappingConfig(Section):
     """Optimisation steps for every later mapping call."""
     iters_after_fusion: PositiveInt = 150
     """Steps re-fitting the map before the next track when the server changed map or decoders."""
+    current_share: float | None = Field(default=None, gt=0.0, lt=1.0)
+    """Fraction of a step's pixels from the current frame when keyframes join (None = even)."""
     covisible_keyframes: NonNegativeInt = 5
     """Co-visible keyframes whose pixels join the current frame's in every mapping call."""
     lr_decoders: PositiveFloat = 0.003

@@ -43,6 +43,8 @@ if TYPE_CHECKING:
 
 logger = logging.getLogger(__name__)
 
+_PIXEL_SAMPLING = ("uniform", "stratified")
+
 __all__ = ["TrackResult", "Tracker", "outlier_mask", "sample_pixels"]
 
 
@@ -82,6 +84,8 @@ class Tracker:
         chunk: rays per rendering pass (None = all).
         reuse_neighbours: metres the farthest sample may move before the neighbour search is
             redone (0 = search at every step).
+        pixel_sampling: "uniform" (the paper: independent draws among the valid pixels) or
+            "stratified" (one draw per cell of a grid over the image, see `sample_pixels`).
     """
 
     def __init__(
@@ -103,6 +107,7 @@ class Tracker:
         backend: str = "auto",
         chunk: int | None = None,
         reuse_neighbours: float = 0.01,
+        pixel_sampling: str = "uniform",
     ) -> None:
         if iters < 1 or n_pixels < 1 or lr <= 0:
             raise ValueError(f"Tracker: need iters >= 1, n_pixels >= 1, lr > 0; got {iters}, "
@@ -112,6 +117,10 @@ class Tracker:
         if not 0 <= err_lo < err_hi or var_factor <= 0:
             raise ValueError(f"Tracker: need 0 <= err_lo < err_hi and var_factor > 0, got "
                              f"{err_lo}, {err_hi}, {var_factor}")
+        if pixel_sampling not in _PIXEL_SAMPLING:
+            raise ValueError(f"Tracker: pixel_sampling must be one of {_PIXEL_SAMPLING}, got "
+                             f"{pixel_sampling!r}")
+        self.pixel_sampling = pixel_sampling
         self.intrinsics = intrinsics
         self.sampler = sampler
         self.iters = iters
@@ -146,7 +155,8 @@ class Tracker:
         if len(point_map) == 0:
             raise ValueError("Tracker.track: the map has no points to track against")
         device = point_map.device
-        u, v = sample_pixels(depth, self.n_pixels, generator)
+        u, v = sample_pixels(depth, self.n_pixels, generator,
+                             stratified=self.pixel_sampling == "stratified")
         depth_obs = depth[v, u]
         color_obs = rgb[v, u] if self.color_weight > 0 else None
         t = self.sampler(depth_obs, generator)
@@ -211,19 +221,46 @@ class Tracker:
 
 
 def sample_pixels(
-    depth: torch.Tensor, n: int, generator: torch.Generator
+    depth: torch.Tensor, n: int, generator: torch.Generator, stratified: bool = False
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """n pixel columns u and rows v [n] (int64) drawn uniformly among those with depth > 0
-    (with replacement; all valid pixels in order when there are fewer than n)."""
-    valid = (depth.reshape(-1) > 0).nonzero(as_tuple=True)[0]
+    """n pixel columns u and rows v [n] (int64) among those with depth > 0 (all valid pixels
+    in order when there are fewer than n).
+
+    Uniform: n independent draws (with replacement). Stratified: the image is cut into about
+    n square cells and one pixel is drawn in each (cells whose pick has no depth give none);
+    the shortfall is made up with uniform draws and a surplus dropped at random. The pixels
+    then cover the whole view, so a frame's pose does not hinge on which part of the image a
+    small random batch happened to favour.
+    """
+    flat = depth.reshape(-1) > 0
+    valid = flat.nonzero(as_tuple=True)[0]
     if len(valid) == 0:
         raise ValueError("no pixel has a valid depth")
-    if len(valid) > n:
-        pick = torch.randint(0, len(valid), (n,), generator=generator,
-                             device=generator.device).to(valid.device)
-        valid = valid[pick]
-    width = depth.shape[1]
-    return valid % width, valid // width
+    height, width = depth.shape
+    if len(valid) <= n:
+        return valid % width, valid // width
+    gdev = generator.device
+    if not stratified:
+        pick = torch.randint(0, len(valid), (n,), generator=generator, device=gdev)
+        valid = valid[pick.to(valid.device)]
+        return valid % width, valid // width
+    cell = math.sqrt(height * width / n)
+    n_u, n_v = math.ceil(width / cell), math.ceil(height / cell)
+    cu = torch.arange(n_u, device=gdev, dtype=torch.float64).repeat(n_v)
+    cv = torch.arange(n_v, device=gdev, dtype=torch.float64).repeat_interleave(n_u)
+    jitter = torch.rand(2, n_u * n_v, generator=generator, device=gdev, dtype=torch.float64)
+    u = ((cu + jitter[0]) * cell).long().clamp(max=width - 1)
+    v = ((cv + jitter[1]) * cell).long().clamp(max=height - 1)
+    index = (v * width + u).to(flat.device)
+    index = index[flat[index]]
+    if len(index) > n:
+        keep = torch.randperm(len(index), generator=generator, device=gdev)[:n]
+        index = index[keep.to(index.device)]
+    elif len(index) < n:
+        extra = torch.randint(0, len(valid), (n - len(index),), generator=generator,
+                              device=gdev)
+        index = torch.cat([index, valid[extra.to(valid.device)]])
+    return index % width, index // width
 
 
 def outlier_mask(

@@ -162,3 +162,19 @@ def test_lr_decay_settles_a_too_large_step(fitted: dict) -> None:
     assert np.std(settled.losses[-5:]) < np.std(wild.losses[-5:])
     with pytest.raises(ValueError, match="lr_end_factor"):
         _tracker(fitted, lr_end_factor=0.0)
+
+
+def test_stratified_pixels_cover_the_view() -> None:
+    depth = torch.full((60, 80), 2.0)
+    depth[:, :20] = 0.0  # a quarter without depth
+    gen = torch.Generator().manual_seed(0)
+    u, v = sample_pixels(depth, 48, gen, stratified=True)
+    assert len(u) == 48 and bool((depth[v, u] > 0).all())
+    # One pick per 10x10 cell of the valid part: every cell holds at least one.
+    cells = set(((u // 10) * 10 + v // 10).tolist())
+    assert len(cells) == 36
+    uniform = [set(((a // 10) * 10 + b // 10).tolist())
+               for a, b in (sample_pixels(depth, 48, gen) for _ in range(20))]
+    assert max(len(c) for c in uniform) < 36  # independent draws leave holes
+    with pytest.raises(ValueError, match="pixel_sampling"):
+        Tracker(Intrinsics(64.0, 64.0, 39.5, 29.5, 80, 60), RaySampler(), pixel_sampling="grid")
