@@ -12,8 +12,7 @@ seen from the views taking part (points elsewhere keep their features and get no
 state); the feature learning rate decays as lr * decay ** (step / decay_steps) from the start
 of every call, as in the paper. The loss is the depth L1 plus colour_weight times the colour
 L1 (mean over pixels and channels, colours in [0, 1]) on pixels with valid depth, drawn afresh
-at every step and shared equally among the views (or, with `current_share`, that fraction to
-the current frame, the first view, and the rest equally among the keyframes).
+at every step and shared equally among the views.
 """
 
 from __future__ import annotations
@@ -88,8 +87,6 @@ class Mapper:
             the rendered depth is off by more than this (m).
         k, radius, backend, chunk: rendering (neighbours, search radius, search backend, rays
             per pass).
-        current_share: fraction of each step's pixels drawn from the first view (the current
-            frame) when keyframes take part; None = every view the same share.
     """
 
     def __init__(
@@ -106,12 +103,7 @@ class Mapper:
         radius: float = 0.15,
         backend: str = "auto",
         chunk: int | None = None,
-        current_share: float | None = None,
     ) -> None:
-        if current_share is not None and not 0 < current_share < 1:
-            raise ValueError(f"Mapper: current_share must be in (0, 1) or None, got "
-                             f"{current_share}")
-        self.current_share = current_share
         self.sampler = sampler
         self.lr_decoders, self.lr_features = lr_decoders, lr_features
         self.feature_lr_decay = feature_lr_decay
@@ -196,7 +188,7 @@ class Mapper:
             {"params": list(decoders.parameters()), "lr": self.lr_decoders},
             {"params": [active], "lr": self.lr_features},
         ])
-        share = _split(n_pixels, len(views), self.current_share)
+        share = _split(n_pixels, len(views))
         first = last = math.nan
         for it in range(iters):
             optimiser.param_groups[1]["lr"] = self.lr_features * self.feature_lr_decay ** (
@@ -241,12 +233,8 @@ class Mapper:
         return seen.nonzero(as_tuple=True)[0]
 
 
-def _split(n: int, parts: int, first_share: float | None = None) -> list[int]:
-    """n pixels shared among `parts` views: as evenly as possible (the first gets the rest),
-    or round(first_share * n) to the first and the others evenly among the rest."""
-    if first_share is not None and parts > 1:
-        first = max(1, min(round(first_share * n), n - (parts - 1)))
-        return [first] + _split(n - first, parts - 1)
+def _split(n: int, parts: int) -> list[int]:
+    """n pixels shared among `parts` views as evenly as possible (the first gets the rest)."""
     base = max(1, n // parts)
     return [base + (n - base * parts if i == 0 and n > base * parts else 0)
             for i in range(parts)]

@@ -148,7 +148,7 @@ class Odometry:
             feature_lr_decay=mp.feature_lr_decay, feature_lr_decay_steps=mp.feature_lr_decay_steps,
             color_weight=mp.color_weight, patch_size=f.patch_size,
             add_points_depth_err=mp.add_points_depth_err, k=f.k_neighbors, radius=f.radius,
-            backend=f.neighbour_backend, chunk=chunk, current_share=mp.current_share,
+            backend=f.neighbour_backend, chunk=chunk,
         )
         return cls(
             intrinsics,

@@ -182,8 +182,6 @@ class MappingConfig(Section):
     """Optimisation steps for every later mapping call."""
     iters_after_fusion: PositiveInt = 150
     """Steps re-fitting the map before the next track when the server changed map or decoders."""
-    current_share: float | None = Field(default=None, gt=0.0, lt=1.0)
-    """Fraction of a step's pixels from the current frame when keyframes join (None = even)."""
     covisible_keyframes: NonNegativeInt = 5
     """Co-visible keyframes whose pixels join the current frame's in every mapping call."""
     lr_decoders: PositiveFloat = 0.003

@@ -114,14 +114,3 @@ def test_view_checks_shapes() -> None:
         View(torch.zeros(10, 10, 3), torch.zeros(10, 10), np.eye(4), INTR)
     view = _view(rgb, depth, np.eye(4))
     assert len(view.valid) == 60 * 80
-
-
-def test_current_share_splits_pixels_and_is_checked() -> None:
-    from cpslam.agent.mapper import _split
-
-    assert _split(500, 6) == [85, 83, 83, 83, 83, 83]  # the paper's even share
-    assert _split(500, 6, 0.5) == [250, 50, 50, 50, 50, 50]
-    assert _split(500, 1, 0.5) == [500]  # no keyframe: everything to the frame
-    assert _split(3, 3, 0.9) == [1, 1, 1]  # every view keeps a pixel
-    with pytest.raises(ValueError, match="current_share"):
-        Mapper(RaySampler(), current_share=1.0)
