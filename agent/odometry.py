@@ -36,6 +36,7 @@ from cpslam.common.field_config import (
     decoders_from_config,
     point_map_from_config,
     sampler_from_config,
+    tracker_args_from_config,
 )
 
 if TYPE_CHECKING:
@@ -135,14 +136,7 @@ class Odometry:
         f, tr, mp = cfg.field, cfg.tracking, cfg.mapping
         seed = cfg.run.seed
         chunk = f.chunk_rays
-        tracker = Tracker(
-            intrinsics, sampler_from_config(f), iters=tr.iters, n_pixels=tr.n_pixels, lr=tr.lr,
-            lr_end_factor=tr.lr_end_factor,
-            color_weight=tr.color_weight, err_lo=tr.outlier_err_lo, err_hi=tr.outlier_err_hi,
-            var_factor=tr.outlier_var_factor, keep_best=tr.keep_best,
-            early_stop_tol=tr.early_stop_tol, k=f.k_neighbors, radius=f.radius,
-            backend=f.neighbour_backend, chunk=chunk, pixel_sampling=tr.pixel_sampling,
-        )
+        tracker = Tracker(intrinsics, sampler_from_config(f), **tracker_args_from_config(f, tr))
         mapper = Mapper(
             sampler_from_config(f), lr_decoders=mp.lr_decoders, lr_features=mp.lr_features,
             feature_lr_decay=mp.feature_lr_decay, feature_lr_decay_steps=mp.feature_lr_decay_steps,

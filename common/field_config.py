@@ -7,13 +7,15 @@ a run's `config.yaml` plus its saved state dicts always give back the same model
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 
-from cpslam.common.config import FieldConfig
+from cpslam.common.config import FieldConfig, TrackingConfig
 from cpslam.common.field import Decoders, FeatureCNN, NeuralPointMap, RaySampler
 
 __all__ = ["cnn_from_config", "decoders_from_config", "point_map_from_config",
-           "sampler_from_config"]
+           "sampler_from_config", "tracker_args_from_config"]
 
 
 def decoders_from_config(field_cfg: FieldConfig, seed: int) -> Decoders:
@@ -62,3 +64,19 @@ def sampler_from_config(field_cfg: FieldConfig, perturb: bool = True) -> RaySamp
 def cnn_from_config(field_cfg: FieldConfig, seed: int) -> FeatureCNN:
     """The untrained feature CNN that gives new points their initial features."""
     return FeatureCNN(feature_dim=field_cfg.feature_dim, seed=seed)
+
+
+def tracker_args_from_config(
+    field_cfg: FieldConfig, tracking_cfg: TrackingConfig
+) -> dict[str, Any]:
+    """Keyword arguments of `Tracker` (all but intrinsics and sampler) from the `tracking`
+    and `field` sections: the agent's tracker and the server's loop refinement share them."""
+    tr = tracking_cfg
+    return dict(
+        iters=tr.iters, n_pixels=tr.n_pixels, lr=tr.lr, lr_end_factor=tr.lr_end_factor,
+        color_weight=tr.color_weight, err_lo=tr.outlier_err_lo, err_hi=tr.outlier_err_hi,
+        var_factor=tr.outlier_var_factor, keep_best=tr.keep_best,
+        early_stop_tol=tr.early_stop_tol, k=field_cfg.k_neighbors, radius=field_cfg.radius,
+        backend=field_cfg.neighbour_backend, chunk=field_cfg.chunk_rays,
+        pixel_sampling=tr.pixel_sampling,
+    )

@@ -73,12 +73,11 @@ class PoseRefiner:
         decoders_factory: builds `Decoders` of the server's shape to load an agent's weights.
         sampler: ray sampler of the tracking (the agents' one).
         feature_dim, cell_size: the field's point feature width and grid cell (m).
-        iters: tracking steps per loop (``loop.register_iters``).
-        n_pixels: pixels with valid depth drawn for tracking, and again for the residual check.
-        lr, color_weight, err_lo, err_hi, var_factor, keep_best, early_stop_tol, k, radius,
-            backend, chunk: as `Tracker` (the ``tracking`` and ``field`` sections).
         params: thresholds of the geometric verification (the ``loop`` section).
         seed: seeds the pixel draws (with the pair, so a pair refines the same way each time).
+        **tracker_args: keyword arguments of `Tracker` (the ``tracking`` and ``field``
+            sections, `tracker_args_from_config`; ``iters`` is ``loop.register_iters``);
+            ``n_pixels`` pixels are drawn for tracking and again for the residual check.
     """
 
     def __init__(
@@ -88,29 +87,14 @@ class PoseRefiner:
         sampler: RaySampler,
         feature_dim: int = 32,
         cell_size: float = 0.14,
-        iters: int = 200,
-        n_pixels: int = 1500,
-        lr: float = 0.0015,
-        color_weight: float = 0.0,
-        err_lo: float = 0.1,
-        err_hi: float = 10.0,
-        var_factor: float = 2.0,
-        keep_best: bool = True,
-        early_stop_tol: float = 0.0,
-        k: int = 8,
-        radius: float = 0.15,
-        backend: str = "auto",
-        chunk: int | None = None,
         params: RegistrationParams | None = None,
         seed: int = 0,
+        **tracker_args: Any,
     ) -> None:
         self.registry = registry
         self.decoders_factory, self.sampler = decoders_factory, sampler
         self.feature_dim, self.cell_size = int(feature_dim), float(cell_size)
-        self.tracker_args: dict[str, Any] = dict(
-            iters=iters, n_pixels=n_pixels, lr=lr, color_weight=color_weight, err_lo=err_lo,
-            err_hi=err_hi, var_factor=var_factor, keep_best=keep_best,
-            early_stop_tol=early_stop_tol, k=k, radius=radius, backend=backend, chunk=chunk)
+        self.tracker_args: dict[str, Any] = {"iters": 200, "n_pixels": 1500, **tracker_args}
         Tracker(Intrinsics(1.0, 1.0, 0.0, 0.0, 1, 1), sampler, **self.tracker_args)  # checks
         self.params = params or RegistrationParams()
         self.seed = int(seed)
@@ -118,18 +102,18 @@ class PoseRefiner:
     @classmethod
     def from_config(cls, cfg: CpslamConfig, registry: Registry | None) -> PoseRefiner:
         """Settings of the ``field``, ``tracking`` and ``loop`` sections."""
-        from cpslam.common.field_config import decoders_from_config, sampler_from_config
+        from cpslam.common.field_config import (
+            decoders_from_config,
+            sampler_from_config,
+            tracker_args_from_config,
+        )
 
-        f, tr, lp = cfg.field, cfg.tracking, cfg.loop
+        f, lp = cfg.field, cfg.loop
         return cls(
             registry, lambda: decoders_from_config(f, cfg.run.seed), sampler_from_config(f),
-            feature_dim=f.feature_dim, cell_size=f.grid_size, iters=lp.register_iters,
-            n_pixels=tr.n_pixels, lr=tr.lr, color_weight=tr.color_weight,
-            err_lo=tr.outlier_err_lo, err_hi=tr.outlier_err_hi,
-            var_factor=tr.outlier_var_factor, keep_best=tr.keep_best,
-            early_stop_tol=tr.early_stop_tol, k=f.k_neighbors, radius=f.radius,
-            backend=f.neighbour_backend, chunk=f.chunk_rays,
-            params=RegistrationParams.from_config(lp, cfg.run.seed), seed=cfg.run.seed)
+            feature_dim=f.feature_dim, cell_size=f.grid_size,
+            params=RegistrationParams.from_config(lp, cfg.run.seed), seed=cfg.run.seed,
+            **{**tracker_args_from_config(f, cfg.tracking), "iters": lp.register_iters})
 
     # ------------------------------------------------------------------------------ hook
 
