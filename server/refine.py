@@ -94,7 +94,8 @@ class PoseRefiner:
         self.registry = registry
         self.decoders_factory, self.sampler = decoders_factory, sampler
         self.feature_dim, self.cell_size = int(feature_dim), float(cell_size)
-        self.tracker_args: dict[str, Any] = {"iters": 200, "n_pixels": 1500, **tracker_args}
+        # 200 steps unless told: more than an agent's per-frame default (Tracker's 100).
+        self.tracker_args: dict[str, Any] = {"iters": 200, **tracker_args}
         Tracker(Intrinsics(1.0, 1.0, 0.0, 0.0, 1, 1), sampler, **self.tracker_args)  # checks
         self.params = params or RegistrationParams()
         self.seed = int(seed)

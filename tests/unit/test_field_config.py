@@ -14,7 +14,7 @@ from cpslam.server.refine import PoseRefiner
 def test_tracker_args_cover_every_tracker_keyword() -> None:
     cfg = load_config("cpu", env={})
     args = tracker_args_from_config(cfg.field, cfg.tracking)
-    # reuse_neighbours is a speed setting with no effect on the result to speak of: no field.
+    # reuse_neighbours (how often the neighbour search is redone) is a speed setting, no field.
     keywords = set(inspect.signature(Tracker.__init__).parameters) - {
         "self", "intrinsics", "sampler", "reuse_neighbours"}
     assert set(args) == keywords  # a new Tracker knob must be read from the config here
