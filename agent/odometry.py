@@ -98,8 +98,6 @@ class Odometry:
         n_pixels: int = 3000,
         covisible_keyframes: int = 5,
         init: str = "zero_motion",
-        map_frame_iters: int | None = None,
-        map_frame_n_pixels: int | None = None,
         depth_min: float = 0.01,
         depth_max: float = 10.0,
         seed: int = 0,
@@ -120,7 +118,6 @@ class Odometry:
         self.n_pixels_first, self.n_pixels = n_pixels_first, n_pixels
         self.covisible_keyframes = covisible_keyframes
         self.init = init
-        self.map_frame_iters, self.map_frame_n_pixels = map_frame_iters, map_frame_n_pixels
         self.depth_min, self.depth_max = depth_min, depth_max
         self.seed, self.agent_id = seed, agent_id
         self.device = point_map.device
@@ -159,7 +156,6 @@ class Odometry:
             iters=mp.iters, iters_after_fusion=mp.iters_after_fusion,
             n_pixels_first=mp.n_pixels_first, n_pixels=mp.n_pixels,
             covisible_keyframes=mp.covisible_keyframes, init=tr.init,
-            map_frame_iters=tr.map_frame_iters, map_frame_n_pixels=tr.map_frame_n_pixels,
             depth_min=cfg.camera.depth_min, depth_max=cfg.camera.depth_max,
             seed=seed, agent_id=agent_id,
         )
@@ -185,13 +181,8 @@ class Odometry:
         if count == 0:
             T_world_cam = np.eye(4)
         else:
-            # A mapped frame's pose places the points it adds, and with them the map that
-            # later frames track against: it may get more steps and pixels than the others.
-            mapped = count % self.map_every == 0
-            result = self.tracker.track(
-                self.point_map, self.decoders, rgb_t, depth_t, self._initial_pose(), generator,
-                iters=self.map_frame_iters if mapped else None,
-                n_pixels=self.map_frame_n_pixels if mapped else None)
+            result = self.tracker.track(self.point_map, self.decoders, rgb_t, depth_t,
+                                        self._initial_pose(), generator)
             T_world_cam, track_iters, track_loss = result.T_world_cam, result.iters, result.loss
         track_time = time.perf_counter() - t0
 

@@ -130,10 +130,6 @@ class TrackingConfig(Section):
     """Optimisation steps per frame (the paper does not state it; 100 is our choice)."""
     n_pixels: PositiveInt = 1500
     """Pixels sampled per step (M2)."""
-    map_frame_iters: PositiveInt | None = None
-    """Steps for a frame that is then mapped (every mapping.every-th); None = iters."""
-    map_frame_n_pixels: PositiveInt | None = None
-    """Pixels for a frame that is then mapped; None = n_pixels."""
     lr: PositiveFloat = 0.0015
     """Adam learning rate of the se(3) pose increment xi (T = T_init @ exp(xi), camera frame)."""
     lr_end_factor: float = Field(default=1.0, gt=0.0, le=1.0)

@@ -142,28 +142,20 @@ class Tracker:
         depth: torch.Tensor,
         T_init: np.ndarray,
         generator: torch.Generator,
-        iters: int | None = None,
-        n_pixels: int | None = None,
     ) -> TrackResult:
         """Optimise the pose of one frame.
 
         rgb: float [H, W, 3] in [0, 1] (only read when color_weight > 0); depth: float32
         [H, W] metres, 0 = invalid; T_init: [4, 4] initial T_world_cam; generator: draws the
-        pixels and sample jitter; iters, n_pixels: this frame's steps and pixels (None = the
-        tracker's own).
+        pixels and sample jitter.
         """
-        iters = self.iters if iters is None else iters
-        n_pixels = self.n_pixels if n_pixels is None else n_pixels
-        if iters < 1 or n_pixels < 1:
-            raise ValueError(f"Tracker.track: need iters >= 1 and n_pixels >= 1, got {iters}, "
-                             f"{n_pixels}")
         if tuple(depth.shape) != self.intrinsics.shape:
             raise ValueError(f"Tracker.track: depth is {tuple(depth.shape)}, the intrinsics "
                              f"say {self.intrinsics.shape}")
         if len(point_map) == 0:
             raise ValueError("Tracker.track: the map has no points to track against")
         device = point_map.device
-        u, v = sample_pixels(depth, n_pixels, generator,
+        u, v = sample_pixels(depth, self.n_pixels, generator,
                              stratified=self.pixel_sampling == "stratified")
         depth_obs = depth[v, u]
         color_obs = rgb[v, u] if self.color_weight > 0 else None
@@ -180,9 +172,9 @@ class Tracker:
         losses: list[float] = []
         best = (math.inf, xi.detach().clone(), 0)
         try:
-            for it in range(iters):
+            for it in range(self.iters):
                 optimiser.param_groups[0]["lr"] = self.lr * self.lr_end_factor ** (
-                    it / max(iters - 1, 1))
+                    it / max(self.iters - 1, 1))
                 T = T0 @ torch_se3_exp(xi)
                 rays_o, rays_d = camera_rays(self.intrinsics, T, u, v)
                 if cached is None or _motion_bound(xi.detach() - cached[0], t_far) \

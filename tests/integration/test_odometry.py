@@ -141,33 +141,6 @@ def test_constant_velocity_initialisation(sequence_dir: Path, monkeypatch) -> No
                 np.testing.assert_allclose(inits[i], poses[i] @ motion, atol=1e-12)
 
 
-def test_mapped_frames_track_with_their_own_steps_and_pixels(sequence_dir: Path,
-                                                            monkeypatch) -> None:
-    """tracking.map_frame_iters / map_frame_n_pixels apply to the frames that are then mapped
-    (every mapping.every-th), the others keep tracking.iters / n_pixels."""
-    import cpslam.common.field.tracking as tracking
-
-    sets = [*QUICK, "mapping.every=3", "tracking.iters=4", "tracking.n_pixels=64",
-            "tracking.map_frame_iters=9", "tracking.map_frame_n_pixels=160"]
-    cfg = load_config("tiny", overrides=sets, env={})
-    frames, seq = _frames(sequence_dir, cfg.camera.downscale, n=7)
-    drawn = []
-    draw = tracking.sample_pixels
-
-    def spy(depth, n, *args, **kwargs):
-        drawn.append(n)
-        return draw(depth, n, *args, **kwargs)
-
-    monkeypatch.setattr(tracking, "sample_pixels", spy)
-    odometry = Odometry.from_config(cfg, seq.intrinsics.scaled(cfg.camera.downscale), "cpu")
-    results = [odometry.step(frame) for frame in frames]
-    assert [r.track_iters for r in results[1:]] == [4, 4, 9, 4, 4, 9]
-    assert drawn == [64, 64, 160, 64, 64, 160]
-    assert [r.index for r in results if r.map_steps] == [0, 3, 6]
-    with pytest.raises(ValueError, match="map_frame_iters"):
-        load_config("tiny", overrides=["tracking.map_frame_iters=0"], env={})
-
-
 def test_frames_must_match_intrinsics_and_depth_is_clipped(sequence_dir: Path) -> None:
     cfg = load_config("tiny", overrides=[*QUICK, "camera.depth_max=2.5"], env={})
     frames, seq = _frames(sequence_dir, cfg.camera.downscale, n=1)
