@@ -15,6 +15,7 @@ from cpslam.common.eval.ate import (
     joint_ate,
 )
 from cpslam.common.eval.rpe import RpeResult, evaluate_rpe
+from cpslam.common.eval.segments import SegmentedAte, reference_jumps, segmented_ate
 from cpslam.common.eval.source import load_trajectory, locate_trajectory
 
 __all__ = [
@@ -23,6 +24,7 @@ __all__ = [
     "AteResult",
     "JointAteResult",
     "RpeResult",
+    "SegmentedAte",
     "align",
     "apply_alignment",
     "associate",
@@ -31,5 +33,7 @@ __all__ = [
     "joint_ate",
     "load_trajectory",
     "locate_trajectory",
+    "reference_jumps",
+    "segmented_ate",
     "umeyama",
 ]

@@ -16,6 +16,7 @@ from rich.table import Table
 from cpslam.common.datasets.cli import FormatOpt, FramesOpt
 from cpslam.common.eval.ate import DEFAULT_MAX_DT, AteResult, evaluate_ate
 from cpslam.common.eval.rpe import RpeResult, evaluate_rpe
+from cpslam.common.eval.segments import SegmentedAte, reference_jumps, segmented_ate
 from cpslam.common.eval.source import load_trajectory, locate_trajectory
 from cpslam.common.trajectory import Trajectory
 
@@ -74,6 +75,13 @@ def ate(
             "(repeat for several, e.g. --rpe 1 --rpe 10).", show_default=False,
         ),
     ] = None,
+    pieces: Annotated[
+        bool,
+        typer.Option(
+            "--pieces", help="Also the ATE over the pieces between one-frame jumps of the "
+            "ground truth, each piece aligned on its own (docs/evaluation.md).",
+        ),
+    ] = False,
 ) -> None:
     """Absolute trajectory error (ATE) of an estimate against ground truth, in centimetres.
 
@@ -92,6 +100,8 @@ def ate(
       cpslam eval ate --gt data/office --format tum --est runs/office --json ate.json --plot ate.png
 
       cpslam eval ate --gt ../shared/data/7scenes-kitchen-0-299 --est runs/kitchen --rpe 1 --rpe 10
+
+      cpslam eval ate --gt ../shared/data/7scenes-kitchen-0-299 --est runs/kitchen --pieces
     """
     try:
         gt_kind, gt_file = locate_trajectory(gt)
@@ -115,16 +125,21 @@ def ate(
         )
         rpes = [evaluate_rpe(gt_traj.stamps, gt_traj.poses, est_traj.stamps, est_traj.poses,
                              delta=delta, max_dt=max_dt) for delta in sorted(set(rpe or []))]
+        split = segmented_ate(gt_traj.stamps, gt_traj.poses, est_traj.stamps, est_traj.poses,
+                              reference_jumps(gt_traj.poses), align=align.value,
+                              max_dt=max_dt) if pieces else None
     except (OSError, ValueError) as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(code=2) from exc
 
-    _print_table(result, gt_file, est_file, rpes)
+    _print_table(result, gt_file, est_file, rpes, split)
     try:
         if json_out is not None:
             record = {"gt": str(gt_file), "est": str(est_file), **result.to_dict()}
             if rpes:
                 record["rpe"] = [r.to_dict() for r in rpes]
+            if split is not None:
+                record["pieces"] = split.to_dict()
             json_out.parent.mkdir(parents=True, exist_ok=True)
             json_out.write_text(json.dumps(record, indent=2) + "\n")
             typer.echo(f"wrote {json_out}")
@@ -147,7 +162,7 @@ def _load(path: Path, kind: str, fmt: str | None, frames: str | None) -> Traject
 
 
 def _print_table(result: AteResult, gt_file: Path, est_file: Path,
-                 rpes: list[RpeResult]) -> None:
+                 rpes: list[RpeResult], split: SegmentedAte | None = None) -> None:
     table = Table(title="Absolute trajectory error", show_header=False, title_justify="left")
     table.add_column("quantity", style="bold")
     table.add_column("value")
@@ -169,4 +184,8 @@ def _print_table(result: AteResult, gt_file: Path, est_file: Path,
         table.add_row(f"RPE over {r.delta} frame{'s' if r.delta > 1 else ''}",
                       f"{1000.0 * r.trans_mean:.2f} mm, {r.rot_mean_deg:.3f} deg mean "
                       f"({r.pairs} pairs)")
+    if split is not None:
+        jumps = ", ".join(f"{j}->{j + 1}" for j in split.jumps) or "none"
+        table.add_row("RMSE over pieces", f"{100.0 * split.rmse:.2f} cm ({len(split.pieces)} "
+                      f"pieces; ground truth jumps at frames {jumps})")
     Console().print(table)

@@ -209,3 +209,30 @@ def test_cli_rpe_rows_and_json(tmp_path: Path, app: typer.Typer) -> None:
     too_long = CliRunner().invoke(app, ["ate", "--gt", str(gt), "--est", str(run),
                                         "--rpe", "60"])
     assert too_long.exit_code == 2 and "need more than delta = 60" in too_long.output
+
+
+def test_cli_pieces_between_ground_truth_jumps(tmp_path: Path, app: typer.Typer) -> None:
+    """--pieces scores the stretches between one-frame jumps of the ground truth apart: an
+    estimate that follows the true motion pays for the jump over the whole run only."""
+    n = 90
+    stamps = np.arange(n) / 30.0
+    step = se3_exp(np.array([0.007, 0.0, 0.002, 0.0, np.radians(0.3), 0.0]))
+    est = np.stack([np.linalg.matrix_power(step, i) for i in range(n)])
+    gt = est.copy()
+    # From frame 50 on, the ground truth's world is shifted by 3 cm and turned by 1.5 deg.
+    gt[50:] = se3_exp(np.array([0.03, 0.01, 0.0, 0.0, 0.0, np.radians(1.5)]))[None] @ gt[50:]
+    write_tum(tmp_path / "gt.tum", stamps, gt)
+    write_tum(tmp_path / "est.tum", stamps, est)
+    out_json = tmp_path / "ate.json"
+    result = CliRunner().invoke(app, ["ate", "--gt", str(tmp_path / "gt.tum"), "--est",
+                                      str(tmp_path / "est.tum"), "--align", "se3", "--pieces",
+                                      "--json", str(out_json)])
+    assert result.exit_code == 0, result.output
+    assert "RMSE over pieces" in result.output and "49->50" in result.output
+    record = json.loads(out_json.read_text())
+    assert record["rmse_m"] > 0.005 and record["pieces"]["rmse"] < 1e-6
+    assert record["pieces"]["jumps_after_frame"] == [49]
+    assert record["pieces"]["pieces"] == [[0, 49], [50, 89]]
+    plain = CliRunner().invoke(app, ["ate", "--gt", str(tmp_path / "gt.tum"), "--est",
+                                     str(tmp_path / "est.tum")])
+    assert plain.exit_code == 0 and "RMSE over pieces" not in plain.output
