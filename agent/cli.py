@@ -89,7 +89,7 @@ def agent(
     """
     from cpslam.common.config.cli import config_or_exit, transport_sets
     from cpslam.common.datasets import DatasetError
-    from cpslam.common.device import resolve_device
+    from cpslam.common.device import apply_num_threads, resolve_device
     from cpslam.common.logs import setup_logging
     from cpslam.common.rundir import create_run_dir
     from cpslam.protocol import ProtocolError, keys
@@ -124,14 +124,11 @@ def agent(
     except DatasetError as err:
         typer.echo(f"error: {err}", err=True)
         raise typer.Exit(2) from None
-    if cfg.run.num_threads:
-        import torch
-
-        torch.set_num_threads(cfg.run.num_threads)
+    threads = apply_num_threads(cfg.run.num_threads)
     run_dir = out if out is not None else create_run_dir(cfg.run.out, cfg.run.name)
     run_dir.mkdir(parents=True, exist_ok=True)
-    logger.info("agent %s: %s (%s, %d frames) on %s → %s", agent_id, seq, sequence.format,
-                len(sequence), torch_device, run_dir)
+    logger.info("agent %s: %s (%s, %d frames) on %s (%d CPU threads) → %s", agent_id, seq,
+                sequence.format, len(sequence), torch_device, threads, run_dir)
     if not standalone:
         raise typer.Exit(_networked(cfg, sequence, agent_id, run_dir, torch_device, wait_timeout,
                                     ack_timeout, not no_progress))

@@ -187,6 +187,7 @@ def frame_metrics(
         "keyframes": sum(1 for r in results if r.is_keyframe),
         "decoder_parameters": sum(p.numel() for p in odometry.decoders.parameters()),
         "device": device,
+        "torch_threads": torch.get_num_threads(),
         "per_frame": [
             {"index": r.index, "timestamp": r.timestamp, "track_time_s": r.track_time_s,
              "track_iters": r.track_iters, "track_loss": r.track_loss,

@@ -10,7 +10,8 @@
   the pieces between such jumps, each aligned on its own (`cpslam.common.eval.segments`), for
   both methods, with its own ratio.
 
-Timings are wall-clock on this machine with `run.num_threads` torch threads (1 when unset);
+Timings are wall-clock on this machine with `run.num_threads` torch threads (`auto` in the
+cpu preset: every usable core for one run, the cores divided among the runs with `--jobs`);
 on CUDA they are synchronised per frame. Mapping is reported per call (what the paper calls
 a mapping step: one round of optimisation iterations) and per optimisation iteration. The
 paper's figures on an RTX 3090 (tracking 0.30 s per frame, mapping 10.1 s per step) are
@@ -19,8 +20,8 @@ printed next to ours; compare them with the `paper` preset on a GPU (`--device c
 Both sequences also get the relative pose error over 1 and 10 frames (RPE: jitter and local
 drift, independent of the alignment). One seed is one sample: `--seeds 0 1 2` runs every
 sequence once per seed (`run.seed`: pixel draws and ray jitter) and adds the mean and the
-worst, and `--jobs 2` runs two of those at once (each on one core; timings then include the
-other job's load).
+worst, and `--jobs 2` runs two of those at once (each on half the cores; timings then
+include the other job's load).
 
 Usage: python bench/odometry.py [--preset cpu] [--device auto|cpu|cuda[:i]] [--frames N]
        [--only synth|real] [--seeds S ...] [--jobs N] [--set a.b=v ...] [--json PATH]
@@ -45,7 +46,7 @@ from cpslam.agent.odometry import Odometry
 from cpslam.common.camera import Intrinsics, resize_rgbd
 from cpslam.common.config import load_config
 from cpslam.common.datasets import open_sequence
-from cpslam.common.device import resolve_device
+from cpslam.common.device import apply_num_threads, resolve_device
 from cpslam.common.eval import evaluate_ate, evaluate_rpe, reference_jumps, segmented_ate
 
 REPO = Path(__file__).resolve().parents[1]
@@ -68,9 +69,11 @@ def main() -> None:
     parser.add_argument("--device", default="cpu", help="auto, cpu, cuda or cuda:N")
     args = parser.parse_args()
     cfg = load_config(args.preset, overrides=args.set, env={})
-    torch.set_num_threads(cfg.run.num_threads or 1)
     device = resolve_device(args.device)
     seeds = args.seeds or [cfg.run.seed]
+    n_runs = len(seeds) * (1 if args.only else 2)
+    share = max(1, min(args.jobs, n_runs))  # runs side by side share the cores
+    apply_num_threads(cfg.run.num_threads, share)
     report: dict = {
         "machine": {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),
                     "torch_threads": torch.get_num_threads(), "torch": torch.__version__,
@@ -86,7 +89,7 @@ def main() -> None:
         kinds.remove("real")
     if "synth" in kinds:
         _ensure_synthetic()
-    jobs = [(args.preset, args.set, kind, seed, args.frames, device)
+    jobs = [(args.preset, args.set, kind, seed, args.frames, device, share)
             for kind in kinds for seed in seeds]
     if args.jobs > 1 and len(jobs) > 1:
         with ProcessPoolExecutor(args.jobs, mp_context=get_context("spawn")) as pool:
@@ -116,9 +119,9 @@ def _ensure_synthetic() -> None:
 
 def _run_job(job: tuple) -> dict:
     """One odometry run (in a worker process when --jobs > 1)."""
-    preset, overrides, kind, seed, frames, device = job
+    preset, overrides, kind, seed, frames, device, share = job
     cfg = load_config(preset, overrides=[*overrides, f"run.seed={seed}"], env={})
-    torch.set_num_threads(cfg.run.num_threads or 1)
+    apply_num_threads(cfg.run.num_threads, share)
     if kind == "synth":
         seq = open_sequence(SYNTH_DIR / "agent_0", frames=slice(0, frames))
         # The synthetic data is already 320x240: process it at its own size.

@@ -1,8 +1,11 @@
-"""Choose the torch device once, at the command line, and pass it down."""
+"""Choose the torch device and the CPU thread count once, at the command line, and pass them
+down."""
 
 from __future__ import annotations
 
+import os
 import re
+from pathlib import Path
 
 _DEVICE_RE = re.compile(r"^(auto|cpu|cuda(:\d+)?)$")
 
@@ -30,3 +33,49 @@ def resolve_device(spec: str = "auto") -> str:
             )
         return f"cuda:{index}"
     return "cpu"
+
+
+def usable_cores(cgroup_cpu_max: Path = Path("/sys/fs/cgroup/cpu.max")) -> int:
+    """CPU cores this process may run on: its affinity mask, capped by a cgroup v2 CPU quota
+    (`docker run --cpus`, Compose `cpus:`), which `os.cpu_count()` and torch both ignore."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        cores = os.cpu_count() or 1
+    try:
+        quota, period = cgroup_cpu_max.read_text().split()[:2]
+        if quota != "max":
+            cores = min(cores, int(quota) // int(period))
+    except (OSError, ValueError):
+        pass  # no cgroup v2 quota readable: the affinity mask stands
+    return max(1, cores)
+
+
+def resolve_num_threads(setting: int | str | None, share: int = 1,
+                        cores: int | None = None) -> int | None:
+    """Turn `run.num_threads` into a thread count for this process.
+
+    A number is used as it is; `auto` divides the usable cores among `share` processes that a
+    launcher starts on this machine side by side (at least one thread each); None leaves
+    torch's own default (None returned).
+    """
+    if setting is None:
+        return None
+    if setting == "auto":
+        if share < 1:
+            raise ValueError(f"resolve_num_threads: share must be >= 1, got {share}")
+        return max(1, (cores or usable_cores()) // share)
+    if isinstance(setting, int) and not isinstance(setting, bool) and setting > 0:
+        return setting
+    raise ValueError(f"run.num_threads {setting!r}: expected a positive integer, auto or null")
+
+
+def apply_num_threads(setting: int | str | None, share: int = 1) -> int:
+    """Set torch's intra-op threads from `run.num_threads` (see `resolve_num_threads`) and
+    return the count torch now uses."""
+    import torch
+
+    threads = resolve_num_threads(setting, share)
+    if threads is not None:
+        torch.set_num_threads(threads)
+    return torch.get_num_threads()

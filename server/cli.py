@@ -86,6 +86,7 @@ def server(
     from cpslam.common.bus import BusError, bus_from_config
     from cpslam.common.config import save_config
     from cpslam.common.config.cli import config_or_exit, transport_sets
+    from cpslam.common.device import apply_num_threads
     from cpslam.common.logs import log_to_file, setup_logging
     from cpslam.common.rundir import create_run_dir
 
@@ -100,10 +101,7 @@ def server(
     run_dir.mkdir(parents=True, exist_ok=True)
     log_to_file(run_dir / "server.log")
     save_config(cfg, run_dir / "config.yaml")
-    if cfg.run.num_threads:
-        import torch
-
-        torch.set_num_threads(cfg.run.num_threads)
+    logger.info("torch CPU threads: %d", apply_num_threads(cfg.run.num_threads))
 
     from cpslam.server.node import ServerNode
 

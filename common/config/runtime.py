@@ -96,8 +96,8 @@ class RunConfig(Section):
     """Run directory name under out; null = a timestamp."""
     log_level: Literal["debug", "info", "warning", "error"] = "info"
     """Least severe log level the daemons write."""
-    num_threads: PositiveInt | None = None
-    """Torch CPU threads; null = torch's default."""
+    num_threads: PositiveInt | Literal["auto"] | None = "auto"
+    """Torch CPU threads: N; auto = usable cores / processes side by side; null = torch's."""
     deterministic: bool = True
     """Ask torch for deterministic algorithms (slower on GPU)."""
 

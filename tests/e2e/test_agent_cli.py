@@ -49,6 +49,7 @@ def test_standalone_run_writes_everything_and_evaluates(room: Path, tmp_path: Pa
     metrics = json.loads((agent_dir / "metrics.json").read_text())
     assert metrics["frames"] == 12 and metrics["points"] > 0
     assert metrics["decoder_parameters"] > 0 and metrics["peak_cpu_memory_mb"] > 0
+    assert metrics["torch_threads"] == 1  # the tiny preset's run.num_threads
     assert len(metrics["per_frame"]) == 12
     result = runner.invoke(cpslam_app, ["eval", "ate", "--gt", str(room), "--est", str(run),
                                         "--json", str(tmp_path / "ate.json")])

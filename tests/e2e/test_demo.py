@@ -14,6 +14,8 @@ from pathlib import Path
 
 import pytest
 
+from cpslam.common.device import usable_cores
+
 pytestmark = pytest.mark.slow
 pytest.importorskip("open3d")
 
@@ -22,6 +24,7 @@ def test_demo_tiny_end_to_end(tmp_path: Path) -> None:
     out = tmp_path / "demo"
     cmd = [sys.executable, "-m", "cpslam", "demo", "--preset", "tiny", "--agents", "2",
            "--frames", "30", "--width", "160", "--height", "120", "--out", str(out),
+           "--set", "run.num_threads=auto",
            "--data-dir", str(tmp_path / "data"), "--no-progress", "--timeout", "600"]
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=900,
                           env={"COLUMNS": "120", **_env()})
@@ -45,6 +48,10 @@ def test_demo_tiny_end_to_end(tmp_path: Path) -> None:
     assert "ATE glob" in done.stdout and "outputs in" in done.stdout
     info = json.loads((out / "demo.json").read_text())
     assert info["frame_slice"] == "0:300:10" and info["wall_s"] > 0
+    # `auto` threads: the server and the two agents divide the cores between them.
+    threads = max(1, usable_cores() // 3)
+    assert f"run.num_threads={threads}" in info["sets"]
+    assert f"({threads} CPU threads)" in (out / "logs" / "agent_0.log").read_text()
 
     # A second run reuses the cached scene, replaces the earlier demo folder, and gives up
     # cleanly at its --timeout (every child stopped).

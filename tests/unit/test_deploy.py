@@ -155,6 +155,17 @@ def test_compose_preset_and_session_come_from_the_environment(compose_bin: Path)
         assert _flag(chosen[name]["command"], "--session") == "lab", name
 
 
+def test_compose_services_share_the_cores_one_thread_each(compose_bin: Path) -> None:
+    from cpslam.common.config import load_config
+
+    default = _resolved(compose_bin, [COMPOSE])["services"]
+    chosen = _resolved(compose_bin, [COMPOSE], env={"CPSLAM_THREADS": "auto"})["services"]
+    for name in ("server", *AGENTS):
+        env = default[name]["environment"]
+        assert load_config("cpu", env=env).run.num_threads == 1, name
+        assert load_config("cpu", env=chosen[name]["environment"]).run.num_threads == "auto"
+
+
 # --- (b) a broken file is rejected (so the tests above can fail) -----------------------------
 
 
