@@ -74,6 +74,8 @@ def agent(
     when networked, where agents and the server may share RUN. Ctrl-C stops the run and saves
     what exists. Networked: waits for the server, resends what was not acknowledged after a
     server restart, exits 0 once everything is acknowledged (3: no server, 4: unacknowledged).
+    Torch uses every core this process may use (run.num_threads: auto); beside other busy
+    processes on the same cores, give it fewer (--set run.num_threads=1).
 
     Examples:
 
@@ -84,6 +86,8 @@ def agent(
       cpslam-agent --seq runs/data/room/agent_0 --standalone --out runs/room
 
       cpslam-agent --seq ../shared/data/7scenes-kitchen-0-299 --standalone --frames 0:100
+
+      cpslam-agent --seq runs/data/room/agent_0 --standalone --set run.num_threads=1
 
       cpslam-agent --seq data/office0 --standalone --preset paper --device cuda
     """

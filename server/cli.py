@@ -73,7 +73,9 @@ def server(
     `cpslam finalise`): RUN/trajectories/, fused_map.ply, pose_graph.g2o, metrics.json,
     server.log. A second signal during finalisation exits at once with code 130 without
     finalising (the state file is kept); the same signal repeated within 1 s is ignored, as
-    wrappers such as `timeout` that signal the whole process group deliver it twice.
+    wrappers such as `timeout` that signal the whole process group deliver it twice. Torch
+    uses every core this process may use (run.num_threads: auto); with agents on the same
+    machine, give each process its share (--set run.num_threads=1 on two cores).
 
     Examples:
 
