@@ -93,7 +93,7 @@ def agent(
     """
     from cpslam.common.config.cli import config_or_exit, transport_sets
     from cpslam.common.datasets import DatasetError
-    from cpslam.common.device import apply_num_threads, resolve_device
+    from cpslam.common.device import configure_torch, resolve_device
     from cpslam.common.logs import setup_logging
     from cpslam.common.rundir import create_run_dir
     from cpslam.protocol import ProtocolError, keys
@@ -128,7 +128,7 @@ def agent(
     except DatasetError as err:
         typer.echo(f"error: {err}", err=True)
         raise typer.Exit(2) from None
-    threads = apply_num_threads(cfg.run.num_threads)
+    threads = configure_torch(cfg.run.num_threads, cfg.run.deterministic)
     run_dir = out if out is not None else create_run_dir(cfg.run.out, cfg.run.name)
     run_dir.mkdir(parents=True, exist_ok=True)
     logger.info("agent %s: %s (%s, %d frames) on %s (%d CPU threads) → %s", agent_id, seq,

@@ -46,7 +46,7 @@ from cpslam.agent.odometry import Odometry
 from cpslam.common.camera import Intrinsics, resize_rgbd
 from cpslam.common.config import load_config
 from cpslam.common.datasets import open_sequence
-from cpslam.common.device import apply_num_threads, resolve_device
+from cpslam.common.device import configure_torch, resolve_device
 from cpslam.common.eval import evaluate_ate, evaluate_rpe, reference_jumps, segmented_ate
 
 REPO = Path(__file__).resolve().parents[1]
@@ -73,7 +73,7 @@ def main() -> None:
     seeds = args.seeds or [cfg.run.seed]
     n_runs = len(seeds) * (1 if args.only else 2)
     share = max(1, min(args.jobs, n_runs))  # runs side by side share the cores
-    apply_num_threads(cfg.run.num_threads, share)
+    configure_torch(cfg.run.num_threads, cfg.run.deterministic, share)
     report: dict = {
         "machine": {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),
                     "torch_threads": torch.get_num_threads(), "torch": torch.__version__,
@@ -121,7 +121,7 @@ def _run_job(job: tuple) -> dict:
     """One odometry run (in a worker process when --jobs > 1)."""
     preset, overrides, kind, seed, frames, device, share = job
     cfg = load_config(preset, overrides=[*overrides, f"run.seed={seed}"], env={})
-    apply_num_threads(cfg.run.num_threads, share)
+    configure_torch(cfg.run.num_threads, cfg.run.deterministic, share)
     if kind == "synth":
         seq = open_sequence(SYNTH_DIR / "agent_0", frames=slice(0, frames))
         # The synthetic data is already 320x240: process it at its own size.

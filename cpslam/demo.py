@@ -143,13 +143,14 @@ def demo(
     if cfg.keyframes.every > KEYFRAME_EVERY and not any(
             s.replace(" ", "").startswith("keyframes.every=") for s in sets):
         sets.insert(0, f"keyframes.every={KEYFRAME_EVERY}")
-    from cpslam.common.device import apply_num_threads, resolve_num_threads
+    from cpslam.common.device import configure_torch, resolve_num_threads
 
     if cfg.run.num_threads == "auto":
         # The server and the agents share this machine's cores: one torch thread pool per
         # process over all of them would oversubscribe the cores several times.
         sets.append(f"run.num_threads={resolve_num_threads('auto', share=agents + 1)}")
-    apply_num_threads(cfg.run.num_threads)  # the report renders after the children exit
+    # The report renders in this process after the children exit.
+    configure_torch(cfg.run.num_threads, cfg.run.deterministic)
     t0 = time.monotonic()
     try:
         prepare_run_dir(out)

@@ -255,7 +255,7 @@ def run(
     """
     from cpslam.common.config.cli import config_or_exit
     from cpslam.common.datasets import DatasetError
-    from cpslam.common.device import apply_num_threads, resolve_device
+    from cpslam.common.device import configure_torch, resolve_device
     from cpslam.common.rundir import create_run_dir
 
     cfg = config_or_exit(preset, config_file, sets, device, seed)
@@ -274,7 +274,7 @@ def run(
     except DatasetError as err:
         typer.echo(f"error: {err}", err=True)
         raise typer.Exit(2) from None
-    apply_num_threads(cfg.run.num_threads)
+    configure_torch(cfg.run.num_threads, cfg.run.deterministic)
     run_dir = out if out is not None else create_run_dir(cfg.run.out, cfg.run.name)
     result = run_collab(cfg, sequences, run_dir, torch_device, show_progress=not no_progress)
     _print_table(result)

@@ -88,7 +88,7 @@ def server(
     from cpslam.common.bus import BusError, bus_from_config
     from cpslam.common.config import save_config
     from cpslam.common.config.cli import config_or_exit, transport_sets
-    from cpslam.common.device import apply_num_threads
+    from cpslam.common.device import configure_torch
     from cpslam.common.logs import log_to_file, setup_logging
     from cpslam.common.rundir import create_run_dir
 
@@ -103,7 +103,8 @@ def server(
     run_dir.mkdir(parents=True, exist_ok=True)
     log_to_file(run_dir / "server.log")
     save_config(cfg, run_dir / "config.yaml")
-    logger.info("torch CPU threads: %d", apply_num_threads(cfg.run.num_threads))
+    threads = configure_torch(cfg.run.num_threads, cfg.run.deterministic)
+    logger.info("torch CPU threads: %d", threads)
 
     from cpslam.server.node import ServerNode
 

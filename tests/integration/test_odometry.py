@@ -92,6 +92,24 @@ def test_deterministic_and_ground_truth_never_read(sequence_dir: Path) -> None:
     assert not np.allclose(first[-1], np.eye(4))
 
 
+def test_two_threads_repeat_bit_for_bit(sequence_dir: Path) -> None:
+    """`run.deterministic` is what makes a multi-threaded CPU run repeat itself (with
+    `configure_torch(2, False)` these three runs differed, measured 2026-12-02)."""
+    from cpslam.common.device import configure_torch
+
+    cfg = load_config("tiny", env={})
+    frames, seq = _frames(sequence_dir, cfg.camera.downscale, n=7)
+    intrinsics = seq.intrinsics.scaled(cfg.camera.downscale)
+    try:
+        assert configure_torch(2, True) == 2
+        runs = [_run(frames, intrinsics, sets=(*QUICK, "field.c_hidden=64")).trajectory()[1]
+                for _ in range(3)]
+    finally:
+        configure_torch(1, True)
+    for other in runs[1:]:
+        np.testing.assert_array_equal(runs[0], other)
+
+
 def test_state_dict_round_trip_resumes_identically(sequence_dir: Path) -> None:
     cfg = load_config("tiny", overrides=QUICK, env={})
     frames, seq = _frames(sequence_dir, cfg.camera.downscale, n=7)

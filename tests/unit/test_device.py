@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from cpslam.common.device import (
-    apply_num_threads,
+    configure_torch,
     resolve_device,
     resolve_num_threads,
     usable_cores,
@@ -53,10 +53,14 @@ def test_usable_cores_honours_a_cgroup_quota(tmp_path) -> None:
     assert usable_cores(tmp_path / "missing") == affinity
 
 
-def test_apply_num_threads_sets_torch() -> None:
+def test_configure_torch_sets_threads_and_determinism() -> None:
     before = torch.get_num_threads()
     try:
-        assert apply_num_threads(1) == 1 == torch.get_num_threads()
-        assert apply_num_threads(None) == 1  # left as it was
+        assert configure_torch(1, True) == 1 == torch.get_num_threads()
+        assert torch.are_deterministic_algorithms_enabled()
+        assert os.environ["CUBLAS_WORKSPACE_CONFIG"] in (":4096:8", ":16:8")
+        assert configure_torch(None, False) == 1  # threads left as they were
+        assert not torch.are_deterministic_algorithms_enabled()
     finally:
         torch.set_num_threads(before)
+        torch.use_deterministic_algorithms(False)
