@@ -71,12 +71,9 @@ def main() -> None:
     cfg = load_config(args.preset, overrides=args.set, env={})
     device = resolve_device(args.device)
     seeds = args.seeds or [cfg.run.seed]
-    n_runs = len(seeds) * (1 if args.only else 2)
-    share = max(1, min(args.jobs, n_runs))  # runs side by side share the cores
-    configure_torch(cfg.run.num_threads, cfg.run.deterministic, share)
     report: dict = {
         "machine": {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),
-                    "torch_threads": torch.get_num_threads(), "torch": torch.__version__,
+                    "torch": torch.__version__,
                     "load_average_1min_at_start": round(os.getloadavg()[0], 2)},
         "preset": args.preset, "overrides": args.set, "frames": args.frames, "device": device,
         "seeds": seeds, "jobs": args.jobs,
@@ -89,6 +86,9 @@ def main() -> None:
         kinds.remove("real")
     if "synth" in kinds:
         _ensure_synthetic()
+    share = max(1, min(args.jobs, len(kinds) * len(seeds)))  # runs side by side share the cores
+    report["machine"]["torch_threads"] = configure_torch(cfg.run.num_threads,
+                                                         cfg.run.deterministic, share)
     jobs = [(args.preset, args.set, kind, seed, args.frames, device, share)
             for kind in kinds for seed in seeds]
     if args.jobs > 1 and len(jobs) > 1:

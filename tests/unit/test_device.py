@@ -54,7 +54,7 @@ def test_usable_cores_honours_a_cgroup_quota(tmp_path) -> None:
 
 
 def test_configure_torch_sets_threads_and_determinism() -> None:
-    before = torch.get_num_threads()
+    before = torch.get_num_threads(), torch.are_deterministic_algorithms_enabled()
     try:
         assert configure_torch(1, True) == 1 == torch.get_num_threads()
         assert torch.are_deterministic_algorithms_enabled()
@@ -62,5 +62,5 @@ def test_configure_torch_sets_threads_and_determinism() -> None:
         assert configure_torch(None, False) == 1  # threads left as they were
         assert not torch.are_deterministic_algorithms_enabled()
     finally:
-        torch.set_num_threads(before)
-        torch.use_deterministic_algorithms(False)
+        torch.set_num_threads(before[0])
+        torch.use_deterministic_algorithms(before[1], warn_only=True)
