@@ -258,9 +258,10 @@ def _pieces(gt_stamps: np.ndarray, gt_poses: np.ndarray, stamps: np.ndarray,
 
 def _rpe(gt_stamps: np.ndarray, gt_poses: np.ndarray, stamps: np.ndarray,
          poses: np.ndarray) -> dict:
-    """Mean relative pose error over 1 and 10 frames, in mm and degrees."""
+    """Mean relative pose error over 1 and 10 frames, in mm and degrees (a span as long as
+    the run or longer is left out)."""
     out = {}
-    for delta in (1, 10):
+    for delta in (d for d in (1, 10) if d < len(poses)):
         rpe = evaluate_rpe(gt_stamps, gt_poses, stamps, poses, delta=delta)
         out[f"rpe{delta}_mm"] = round(1000 * rpe.trans_mean, 2)
         out[f"rpe{delta}_deg"] = round(rpe.rot_mean_deg, 3)
@@ -279,7 +280,8 @@ def print_table(report: dict) -> None:
     def accuracy(r: dict) -> tuple[str, ...]:
         return (str(r.get("ate_origin_cm", "-")), str(r["ate_se3_cm"]),
                 str(r.get("ate_se3_pieces_cm", "-")),
-                f"{r['rpe1_mm']}/{r['rpe1_deg']}", f"{r['rpe10_mm']}/{r['rpe10_deg']}")
+                *(f"{r[f'rpe{d}_mm']}/{r[f'rpe{d}_deg']}" if f"rpe{d}_mm" in r else "-"
+                  for d in (1, 10)))
 
     for name in ("synthetic", "real"):
         r = report.get(name)

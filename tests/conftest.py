@@ -43,15 +43,19 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
 @pytest.fixture(autouse=True)
 def _one_torch_thread():
     """Every test starts with one torch thread (see pytest_configure), whatever an earlier
-    in-process command set."""
+    in-process command set, and leaves torch's deterministic-algorithms setting (which
+    in-process daemon commands switch on through run.deterministic) as it found it."""
     try:
         import torch
     except ImportError:  # pragma: no cover
         yield
         return
+    deterministic = torch.are_deterministic_algorithms_enabled()
+    warn_only = torch.is_deterministic_algorithms_warn_only_enabled()
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(1)
+    torch.use_deterministic_algorithms(deterministic, warn_only=warn_only)
 
 
 @pytest.fixture(scope="session")

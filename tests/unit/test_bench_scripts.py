@@ -7,6 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 BENCH = Path(__file__).resolve().parents[2] / "bench"
@@ -33,3 +34,25 @@ def test_odometry_bench_summarises_seeds() -> None:
     assert [s["seed"] for s in out["per_seed"]] == [0, 1]
     assert out["mean_over_seeds"]["ate_se3_cm"] == 3.0
     assert out["worst_over_seeds"] == {"ate_se3_cm": 4.0, "rpe1_mm": 7.0}
+
+
+def test_odometry_bench_rpe_leaves_out_spans_longer_than_the_run(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    sys.path.insert(0, str(BENCH))
+    try:
+        import odometry as bench
+    finally:
+        sys.path.remove(str(BENCH))
+    stamps = np.arange(8, dtype=np.float64)
+    poses = np.repeat(np.eye(4)[None], 8, axis=0)
+    poses[:, 0, 3] = 0.01 * stamps  # 1 cm per frame
+    est = poses.copy()
+    est[:, 0, 3] *= 1.1  # 1 mm per frame too far
+    out = bench._rpe(stamps, poses, stamps, est)
+    assert out["rpe1_mm"] == pytest.approx(1.0) and "rpe10_mm" not in out
+    report = {"seeds": [0], "paper_rtx3090": bench.PAPER, "synthetic": {"resolution": "8x8", "ate_se3_cm": 0.1,
+              "mean_s_per_frame": 1.0, "tracking_s_per_frame": 0.5,
+              "mapping_s_per_call": 1.0, "points": 3, "per_seed": [{}], **out}}
+    bench.print_table(report)  # prints "-" for the missing span instead of failing
+    row = next(line for line in capsys.readouterr().out.splitlines() if "cpslam" in line)
+    assert "1.0/" in row and " - " in row
