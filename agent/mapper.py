@@ -12,7 +12,9 @@ seen from the views taking part (points elsewhere keep their features and get no
 state); the feature learning rate decays as lr * decay ** (step / decay_steps) from the start
 of every call, as in the paper. The loss is the depth L1 plus colour_weight times the colour
 L1 (mean over pixels and channels, colours in [0, 1]) on pixels with valid depth, drawn afresh
-at every step and shared equally among the views.
+at every step and shared equally among the views. With a pose rate (`mapping.pose_lr`) the
+first view's pose (the current frame) is optimised jointly, by its own Adam group; the
+keyframes' poses stay fixed and anchor the map, so the map cannot simply bend to the frame.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ import torch
 from torch import nn
 
 from cpslam.common.camera import Intrinsics
+from cpslam.common.geometry_torch import torch_se3_exp
 from cpslam.common.field import (
     Decoders,
     FeatureCNN,
@@ -66,12 +69,14 @@ class View:
 
 @dataclass
 class MapResult:
-    """One optimisation call: steps run, loss of the first and last step, seconds."""
+    """One optimisation call: steps run, loss of the first and last step, seconds, and the
+    first view's refined pose ([4, 4] float64; None when its pose was not optimised)."""
 
     steps: int
     loss_first: float
     loss_last: float
     seconds: float
+    T_world_cam: np.ndarray | None = None
 
 
 class Mapper:
@@ -175,25 +180,39 @@ class Mapper:
         iters: int,
         n_pixels: int,
         generator: torch.Generator,
+        pose_lr: float = 0.0,
     ) -> MapResult:
         """Optimise features (of the points seen by `views`) and decoders for `iters` steps
-        on `n_pixels` pixels per step. Returns the first and last step's loss."""
+        on `n_pixels` pixels per step. Returns the first and last step's loss.
+
+        pose_lr > 0 also optimises the pose of views[0] (the current frame) as
+        T_world_cam @ exp(xi), xi an se(3) increment in its camera frame, by Adam at this
+        rate; the map points stay where they are while it moves, and the refined pose is
+        returned in the result (the view itself is left unchanged)."""
         start = time.perf_counter()
+        refine = pose_lr > 0 and len(views) > 0 and len(views[0].valid) > 0
         views = [view for view in views if len(view.valid)]
         if iters < 1 or not views or len(point_map) == 0:
             return MapResult(0, math.nan, math.nan, time.perf_counter() - start)
         rows = self._rows_in_view(point_map, views)
         active = nn.Parameter(point_map.features.detach()[rows].clone())
-        optimiser = torch.optim.Adam([
+        groups = [
             {"params": list(decoders.parameters()), "lr": self.lr_decoders},
             {"params": [active], "lr": self.lr_features},
-        ])
+        ]
+        T0 = torch.as_tensor(views[0].T_world_cam, dtype=torch.float64,
+                             device=views[0].depth.device)
+        xi = torch.zeros(6, dtype=torch.float64, device=T0.device, requires_grad=refine)
+        if refine:
+            groups.append({"params": [xi], "lr": pose_lr})
+        optimiser = torch.optim.Adam(groups)
         share = _split(n_pixels, len(views))
         first = last = math.nan
         for it in range(iters):
             optimiser.param_groups[1]["lr"] = self.lr_features * self.feature_lr_decay ** (
                 it / self.feature_lr_decay_steps)
-            rays_o, rays_d, depth_obs, color_obs = _batch(views, share, generator)
+            T_first = T0 @ torch_se3_exp(xi) if refine else None
+            rays_o, rays_d, depth_obs, color_obs = _batch(views, share, generator, T_first)
             features = point_map.features.detach().index_copy(0, rows, active)
             out = render_rays(point_map, decoders, rays_o, rays_d, depth_obs, self.sampler,
                               generator, self.k, self.radius, features=features,
@@ -208,10 +227,14 @@ class Mapper:
             if it == 0:
                 first = last
         point_map.set_features(rows, active)
+        T_refined = None
+        if refine:
+            with torch.no_grad():
+                T_refined = (T0 @ torch_se3_exp(xi)).cpu().numpy()
         seconds = time.perf_counter() - start
         logger.debug("mapping: %d steps over %d views, %d active points, loss %.4f -> %.4f "
                      "(%.2f s)", iters, len(views), len(rows), first, last, seconds)
-        return MapResult(iters, first, last, seconds)
+        return MapResult(iters, first, last, seconds, T_refined)
 
     def _rows_in_view(self, point_map: NeuralPointMap, views: list[View]) -> torch.Tensor:
         """Rows of the points whose neighbourhood (radius) reaches into any of the views."""
@@ -241,9 +264,11 @@ def _split(n: int, parts: int) -> list[int]:
 
 
 def _batch(
-    views: list[View], share: list[int], generator: torch.Generator
+    views: list[View], share: list[int], generator: torch.Generator,
+    T_first: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Rays, observed depth and colour of `share[i]` random valid pixels of every view."""
+    """Rays, observed depth and colour of `share[i]` random valid pixels of every view
+    (views[0] seen from T_first instead of its own pose when given)."""
     rays_o, rays_d, depth, color = [], [], [], []
     for view, n in zip(views, share, strict=True):
         pick = torch.randint(0, len(view.valid), (n,), generator=generator,
@@ -251,7 +276,8 @@ def _batch(
         flat = view.valid[pick]
         width = view.intrinsics.width
         u, v = flat % width, flat // width
-        T = torch.as_tensor(view.T_world_cam, dtype=torch.float64, device=view.depth.device)
+        T = torch.as_tensor(view.T_world_cam, dtype=torch.float64, device=view.depth.device) \
+            if T_first is None or view is not views[0] else T_first
         o, d = camera_rays(view.intrinsics, T, u, v)
         rays_o.append(o)
         rays_d.append(d)

@@ -97,6 +97,7 @@ class Odometry:
         n_pixels_first: int = 3136,
         n_pixels: int = 3000,
         covisible_keyframes: int = 5,
+        pose_lr: float = 0.0,
         init: str = "zero_motion",
         depth_min: float = 0.01,
         depth_max: float = 10.0,
@@ -117,6 +118,7 @@ class Odometry:
             iters_after_fusion
         self.n_pixels_first, self.n_pixels = n_pixels_first, n_pixels
         self.covisible_keyframes = covisible_keyframes
+        self.pose_lr = pose_lr
         self.init = init
         self.depth_min, self.depth_max = depth_min, depth_max
         self.seed, self.agent_id = seed, agent_id
@@ -155,7 +157,7 @@ class Odometry:
             map_every=mp.every, kf_every=cfg.keyframes.every, iters_first=mp.iters_first,
             iters=mp.iters, iters_after_fusion=mp.iters_after_fusion,
             n_pixels_first=mp.n_pixels_first, n_pixels=mp.n_pixels,
-            covisible_keyframes=mp.covisible_keyframes, init=tr.init,
+            covisible_keyframes=mp.covisible_keyframes, pose_lr=mp.pose_lr, init=tr.init,
             depth_min=cfg.camera.depth_min, depth_max=cfg.camera.depth_max,
             seed=seed, agent_id=agent_id,
         )
@@ -195,8 +197,8 @@ class Odometry:
         map_time, map_steps, optimise_time = refit_time, refit_steps, refit_time
         if count % self.map_every == 0:
             t1 = time.perf_counter()
-            steps, seconds = self._map(rgb, depth, rgb_t, depth_t, T_world_cam, kf_id, count,
-                                       generator)
+            steps, seconds, T_world_cam = self._map(rgb, depth, rgb_t, depth_t, T_world_cam,
+                                                    kf_id, count, generator)
             map_steps, optimise_time = map_steps + steps, optimise_time + seconds
             map_time += time.perf_counter() - t1
         self._last_rgbd = (rgb_t, depth_t)
@@ -259,9 +261,11 @@ class Odometry:
 
     def _map(self, rgb: np.ndarray, depth: np.ndarray, rgb_t: torch.Tensor,
              depth_t: torch.Tensor, T_world_cam: np.ndarray, kf_id: int | None, count: int,
-             generator: torch.Generator) -> tuple[int, float]:
+             generator: torch.Generator) -> tuple[int, float, np.ndarray]:
         """Add points, pick co-visible keyframes, optimise; returns the optimisation's steps
-        and seconds (the caller times the whole call)."""
+        and seconds (the caller times the whole call) and the frame's pose: refined with the
+        map when mapping.pose_lr > 0 and the frame is not a keyframe (a keyframe's pose
+        anchors points and enters the pose table, so it stays as tracked)."""
         anchor = self.keyframes.latest
         assert anchor is not None  # frame 0 is always a keyframe
         ids = self.mapper.add_points(self.point_map, self.decoders, self.cnn, rgb, depth,
@@ -275,9 +279,11 @@ class Odometry:
             iters = self.iters_after_fusion if self.fused else self.iters
             n_pixels = self.n_pixels
         self.fused = False
+        pose_lr = self.pose_lr if kf_id is None else 0.0
         result = self.mapper.optimise(self.point_map, self.decoders, views, iters, n_pixels,
-                                      generator)
-        return result.steps, result.seconds
+                                      generator, pose_lr=pose_lr)
+        refined = T_world_cam if result.T_world_cam is None else result.T_world_cam
+        return result.steps, result.seconds, refined
 
     def _refit(self, generator: torch.Generator) -> tuple[int, float]:
         """`mapping.iters_after_fusion` steps on the last frame (at its pose, which follows

@@ -196,6 +196,9 @@ class MappingConfig(Section):
     """Weight of the colour L1 term in the mapping loss (depth L1 has weight 1)."""
     add_points_depth_err: PositiveFloat | None = None
     """Add points where rendered depth errs by more than this (m); null = no point within radius."""
+    pose_lr: NonNegativeFloat = 0.0
+    """Adam rate of the current frame's se(3) pose increment, optimised jointly with the map
+    (0 = the tracked pose is kept, the paper; keyframe frames always keep theirs)."""
 
 
 class KeyframesConfig(Section):

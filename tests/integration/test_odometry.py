@@ -159,6 +159,38 @@ def test_constant_velocity_initialisation(sequence_dir: Path, monkeypatch) -> No
                 np.testing.assert_allclose(inits[i], poses[i] @ motion, atol=1e-12)
 
 
+def test_pose_lr_refines_mapping_frames_but_not_keyframes(sequence_dir: Path,
+                                                        monkeypatch) -> None:
+    """mapping.pose_lr: the pose of a mapping frame that is not a keyframe (frame 5 with
+    keyframes every 10) is the tracked pose refined with the map; other frames, and the
+    keyframe frame 0, keep what tracking gave."""
+    cfg = load_config("tiny", env={})
+    frames, seq = _frames(sequence_dir, cfg.camera.downscale, n=7)
+    intrinsics = seq.intrinsics.scaled(cfg.camera.downscale)
+    for pose_lr in (0.0, 0.002):
+        odometry = Odometry.from_config(load_config(
+            "tiny", overrides=[*QUICK, "keyframes.every=10", f"mapping.pose_lr={pose_lr}"],
+            env={}), intrinsics, "cpu")
+        tracked = [np.eye(4)]
+        track = odometry.tracker.track
+
+        def spy(*args, _track=track, _tracked=tracked, **kwargs):
+            result = _track(*args, **kwargs)
+            _tracked.append(result.T_world_cam.copy())
+            return result
+
+        monkeypatch.setattr(odometry.tracker, "track", spy)
+        for frame in frames:
+            odometry.step(frame)
+        _, poses = odometry.trajectory()
+        for i in (0, 1, 2, 3, 4, 6):
+            np.testing.assert_array_equal(poses[i], tracked[i])
+        moved = np.abs(poses[5] - tracked[5]).max()
+        assert (moved > 1e-6) if pose_lr else (moved == 0), moved
+        assert moved < 0.05  # a refinement, not a jump
+        np.testing.assert_array_equal(odometry.keyframes.get(0).T_world_cam, np.eye(4))
+
+
 def test_frames_must_match_intrinsics_and_depth_is_clipped(sequence_dir: Path) -> None:
     cfg = load_config("tiny", overrides=[*QUICK, "camera.depth_max=2.5"], env={})
     frames, seq = _frames(sequence_dir, cfg.camera.downscale, n=1)

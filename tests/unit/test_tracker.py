@@ -3,6 +3,7 @@ outlier mask; pixel sampling."""
 
 from __future__ import annotations
 
+import copy
 import numpy as np
 import pytest
 import torch
@@ -70,7 +71,7 @@ def fitted() -> dict:
     T_true = _look_at_corner(np.array([0.05, 0.03, -0.05]))
     rgb, depth = _box_view(T_true, intr)
     return {"map": point_map, "decoders": decoders, "intr": intr, "sampler": sampler,
-            "rgb": rgb, "depth": depth, "T_true": T_true}
+            "rgb": rgb, "depth": depth, "T_true": T_true, "views": views}
 
 
 def _tracker(fitted: dict, **kwargs) -> Tracker:
@@ -104,6 +105,30 @@ def test_recovers_2cm_2deg_perturbation(fitted: dict) -> None:
     t1, r1 = _errors(result.T_world_cam, T_true)
     assert result.iters == 60 and result.losses[-1] < 0.5 * result.losses[0]
     assert t1 < 0.008 and r1 < 0.5, (t1, r1)
+
+
+def test_mapping_with_pose_lr_refines_the_current_frame(fitted: dict) -> None:
+    """Joint optimisation (mapping.pose_lr): a 1 cm / 1 degree error in the current frame's
+    pose shrinks while the map is fitted, and the map points stay where they are."""
+    T_true = fitted["T_true"]
+    axis = np.array([1.0, -2.0, 0.5]) / np.linalg.norm([1.0, -2.0, 0.5])
+    T_off = T_true @ se3_exp(np.concatenate(([0.006, 0.005, -0.006], np.radians(1.0) * axis)))
+    mapper = Mapper(fitted["sampler"], patch_size=2, k=6, radius=0.15, color_weight=0.2)
+    view = View(torch.from_numpy(fitted["rgb"]).float() / 255,
+                torch.from_numpy(fitted["depth"]), T_off, fitted["intr"])
+    results = {}
+    for pose_lr in (0.0, 0.002):
+        point_map, decoders = copy.deepcopy(fitted["map"]), copy.deepcopy(fitted["decoders"])
+        xyz = point_map.xyz_world().clone()
+        results[pose_lr] = mapper.optimise(point_map, decoders, [view, *fitted["views"]], 100,
+                                           1000,
+                                           torch.Generator().manual_seed(2), pose_lr=pose_lr)
+        assert torch.equal(point_map.xyz_world(), xyz)
+    assert results[0.0].T_world_cam is None  # the pose was not optimised
+    t0, r0 = _errors(T_off, T_true)
+    t1, r1 = _errors(results[0.002].T_world_cam, T_true)
+    assert t1 < 0.3 * t0 and r1 < 0.3 * r0, (t0, r0, t1, r1)
+    assert np.array_equal(view.T_world_cam, T_off)  # the view itself is left alone
 
 
 def test_keep_best_returns_the_lowest_loss_pose(fitted: dict) -> None:
