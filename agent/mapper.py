@@ -29,7 +29,6 @@ import torch
 from torch import nn
 
 from cpslam.common.camera import Intrinsics
-from cpslam.common.geometry_torch import torch_se3_exp
 from cpslam.common.field import (
     Decoders,
     FeatureCNN,
@@ -39,6 +38,7 @@ from cpslam.common.field import (
     patch_points,
     render_rays,
 )
+from cpslam.common.geometry_torch import torch_se3_exp
 
 logger = logging.getLogger(__name__)
 

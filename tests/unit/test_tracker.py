@@ -4,6 +4,7 @@ outlier mask; pixel sampling."""
 from __future__ import annotations
 
 import copy
+
 import numpy as np
 import pytest
 import torch
