@@ -197,8 +197,7 @@ class MappingConfig(Section):
     add_points_depth_err: PositiveFloat | None = None
     """Add points where rendered depth errs by more than this (m); null = no point within radius."""
     pose_lr: NonNegativeFloat = 0.0
-    """Adam rate of the current frame's se(3) pose increment, optimised jointly with the map
-    (0 = the tracked pose is kept, the paper; keyframe frames always keep theirs)."""
+    """Adam rate refining a non-keyframe mapping frame's pose with the map (0 = keep tracked)."""
 
 
 class KeyframesConfig(Section):
