@@ -200,10 +200,10 @@ class Mapper:
             {"params": list(decoders.parameters()), "lr": self.lr_decoders},
             {"params": [active], "lr": self.lr_features},
         ]
-        T0 = torch.as_tensor(views[0].T_world_cam, dtype=torch.float64,
-                             device=views[0].depth.device)
-        xi = torch.zeros(6, dtype=torch.float64, device=T0.device, requires_grad=refine)
         if refine:
+            T0 = torch.as_tensor(views[0].T_world_cam, dtype=torch.float64,
+                                 device=views[0].depth.device)
+            xi = torch.zeros(6, dtype=torch.float64, device=T0.device, requires_grad=True)
             groups.append({"params": [xi], "lr": pose_lr})
         optimiser = torch.optim.Adam(groups)
         share = _split(n_pixels, len(views))
@@ -270,14 +270,14 @@ def _batch(
     """Rays, observed depth and colour of `share[i]` random valid pixels of every view
     (views[0] seen from T_first instead of its own pose when given)."""
     rays_o, rays_d, depth, color = [], [], [], []
-    for view, n in zip(views, share, strict=True):
+    for i, (view, n) in enumerate(zip(views, share, strict=True)):
         pick = torch.randint(0, len(view.valid), (n,), generator=generator,
                              device=generator.device).to(view.valid.device)
         flat = view.valid[pick]
         width = view.intrinsics.width
         u, v = flat % width, flat // width
-        T = torch.as_tensor(view.T_world_cam, dtype=torch.float64, device=view.depth.device) \
-            if T_first is None or view is not views[0] else T_first
+        T = T_first if T_first is not None and i == 0 else torch.as_tensor(
+            view.T_world_cam, dtype=torch.float64, device=view.depth.device)
         o, d = camera_rays(view.intrinsics, T, u, v)
         rays_o.append(o)
         rays_d.append(d)

@@ -53,7 +53,7 @@ def test_odometry_bench_rpe_leaves_out_spans_longer_than_the_run(
     report = {"seeds": [0], "paper_rtx3090": bench.PAPER,
               "synthetic": {"resolution": "8x8", "ate_se3_cm": 0.1, "mean_s_per_frame": 1.0,
                             "tracking_s_per_frame": 0.5,
-              "mapping_s_per_call": 1.0, "points": 3, "per_seed": [{}], **out}}
+                            "mapping_s_per_call": 1.0, "points": 3, "per_seed": [{}], **out}}
     bench.print_table(report)  # prints "-" for the missing span instead of failing
     row = next(line for line in capsys.readouterr().out.splitlines() if "cpslam" in line)
     assert "1.0/" in row and " - " in row
