@@ -20,7 +20,8 @@ import numpy as np
 if TYPE_CHECKING:
     import torch
 
-__all__ = ["Intrinsics", "backproject_torch", "pixel_rays_torch", "resize_rgbd", "scaled_size"]
+__all__ = ["Intrinsics", "backproject_torch", "pixel_rays_torch", "resize_depth", "resize_rgbd",
+           "scaled_size"]
 
 
 @dataclass(frozen=True)
@@ -181,9 +182,9 @@ def scaled_size(width: int, height: int, factor: float) -> tuple[int, int]:
 def resize_rgbd(rgb: np.ndarray, depth: np.ndarray, factor: float) -> tuple[np.ndarray, np.ndarray]:
     """Resize an RGB ``[H, W, 3]`` uint8 and depth ``[H, W]`` float32 pair by ``factor``.
 
-    Colour uses area averaging; depth uses nearest neighbour so no pixel mixes depths from
-    both sides of an edge (or an invalid 0 with a valid depth). Pair with
-    ``Intrinsics.scaled(factor)``.
+    Colour uses area averaging; depth goes through `resize_depth` (no pixel mixes depths
+    from both sides of an edge or an invalid 0 with a valid depth). Both are sampled where
+    ``Intrinsics.scaled(factor)`` puts the new pixel centres.
     """
     if rgb.ndim != 3 or rgb.shape[2] != 3:
         raise ValueError(f"resize_rgbd: expected rgb of shape [H, W, 3], got {rgb.shape}")
@@ -196,8 +197,43 @@ def resize_rgbd(rgb: np.ndarray, depth: np.ndarray, factor: float) -> tuple[np.n
     if size == (width, height):
         return rgb.copy(), depth.copy()
     rgb_out = cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
-    depth_out = cv2.resize(depth, size, interpolation=cv2.INTER_NEAREST)
-    return rgb_out, depth_out
+    return rgb_out, resize_depth(depth, size)
+
+
+def resize_depth(depth: np.ndarray, size: tuple[int, int], max_step: float = 0.03
+                 ) -> np.ndarray:
+    """Depth ``[H, W]`` resampled to ``size = (width, height)`` at the pixel centres that
+    ``Intrinsics.scaled`` assumes (new pixel u sits at source ``(u + 0.5) / s - 0.5``).
+
+    Bilinear where the four source pixels around that point are valid and within
+    ``max_step`` (relative) of each other; elsewhere (edges, holes) the nearest source pixel,
+    so no depth mixes both sides of an edge or an invalid 0. OpenCV's nearest-neighbour
+    resize instead takes the top-left pixel of each block: half a source pixel off the centre
+    that the colour (area average) and the intrinsics use, a misregistration of depth against
+    colour and pose.
+    """
+    depth = np.asarray(depth, dtype=np.float32)
+    height, width = depth.shape
+    new_w, new_h = size
+    if (new_w, new_h) == (width, height):
+        return depth.copy()
+    x = (np.arange(new_w) + 0.5) * (width / new_w) - 0.5
+    y = (np.arange(new_h) + 0.5) * (height / new_h) - 0.5
+    x0 = np.clip(np.floor(x).astype(np.int64), 0, width - 2)
+    y0 = np.clip(np.floor(y).astype(np.int64), 0, height - 2)
+    ax = np.clip(x - x0, 0.0, 1.0).astype(np.float32)[None, :]
+    ay = np.clip(y - y0, 0.0, 1.0).astype(np.float32)[:, None]
+    d00 = depth[np.ix_(y0, x0)]
+    d01 = depth[np.ix_(y0, x0 + 1)]
+    d10 = depth[np.ix_(y0 + 1, x0)]
+    d11 = depth[np.ix_(y0 + 1, x0 + 1)]
+    corners = np.stack((d00, d01, d10, d11))
+    lo, hi = corners.min(axis=0), corners.max(axis=0)
+    smooth = (lo > 0) & (hi - lo <= max_step * lo)
+    bilinear = (d00 * (1 - ax) + d01 * ax) * (1 - ay) + (d10 * (1 - ax) + d11 * ax) * ay
+    nearest = depth[np.ix_(np.clip(np.floor(y + 0.5).astype(np.int64), 0, height - 1),
+                           np.clip(np.floor(x + 0.5).astype(np.int64), 0, width - 1))]
+    return np.where(smooth, bilinear, nearest).astype(np.float32)
 
 
 def backproject_torch(intr: Intrinsics, depth: torch.Tensor) -> torch.Tensor:
