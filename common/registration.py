@@ -43,7 +43,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from cpslam.common.camera import Intrinsics
-from cpslam.common.geometry import invert, so3_exp
+from cpslam.common.geometry import invert
+from cpslam.common.icp import icp, icp_information
 
 if TYPE_CHECKING:
     from cpslam.common.config.collab import LoopConfig
@@ -54,8 +55,6 @@ logger = logging.getLogger(__name__)
 
 _MIN_POINTS = 30  # fewer coarse points than this cannot be registered meaningfully
 _RANSAC_BATCH = 500  # samples drawn (and scored at once) between stopping checks
-_LAMBDA_GEOMETRIC = 0.968  # weight of the geometric term in coloured ICP (Park et al.)
-_COLOR_KERNEL = 0.1  # Tukey width of the intensity residual (intensity 0..1)
 
 
 class RGBDView(Protocol):
@@ -179,6 +178,10 @@ class Registration:
     details: dict[str, Any] = field(default_factory=dict)
     """Diagnostics of `register_rgbd`: coarse point counts, feature matches, the support of
     each RANSAC hypothesis, the reasons the tried ones failed."""
+    information: np.ndarray | None = None
+    """Gauss-Newton information [6, 6] of T_dst_src (right perturbation, translation first)
+    as if the fine correspondences were independent (`cpslam.common.icp.icp_information`);
+    set by `register_rgbd` on success, else None."""
 
 
 def register_rgbd(
@@ -220,6 +223,10 @@ def register_rgbd(
                          f"downsampling; need {_MIN_POINTS})")
     else:
         result = _search(a, b, params, initial)
+        if result.success:
+            result.information, pairs = icp_information(
+                a, b, result.T_dst_src, params.voxel_size, 0.4 * params.voxel_size)
+            result.details["information_pairs"] = pairs
     result.details.update(points_src=a.size, points_dst=b.size)
     result.seconds = time.perf_counter() - start
     logger.debug(
@@ -482,61 +489,8 @@ def _refine(a: _View, b: _View, T_init: np.ndarray, params: RegistrationParams) 
     geometry leaves free, such as sliding along a wall. Written in numpy rather than with
     open3d's ICP, whose multi-threaded sums differ in the last bits from run to run.
     """
-    T = _icp(a, b, T_init, False, params.max_distance, params.voxel_size)
-    return _icp(a, b, T, True, params.voxel_size, 0.4 * params.voxel_size)
-
-
-def _icp(a: _View, b: _View, T: np.ndarray, fine: bool, max_distance: float, kernel: float,
-         iters: int = 40, tol: float = 1e-6) -> np.ndarray:
-    """Gauss-Newton on r = (p - q) . n, n the mean of both normals (symmetric ICP), plus on
-    the fine clouds the intensity residual against q's tangent-plane intensity gradient."""
-    if fine:
-        xyz_a, normals_a, xyz_b, normals_b = a.fine_xyz, a.fine_normals, b.fine_xyz, b.fine_normals
-        tree, gradient_b = b.tree, b.gradient
-    else:
-        xyz_a, normals_a, xyz_b, normals_b = a.xyz, a.normals, b.xyz, b.normals
-        tree, gradient_b = b.coarse_tree, None
-    T = T.copy()
-    for _ in range(iters):
-        p = xyz_a @ T[:3, :3].T + T[:3, 3]
-        dist, j = tree.query(p, distance_upper_bound=max_distance)
-        ok = np.flatnonzero(np.isfinite(dist))
-        p, n_p, j = p[ok], normals_a[ok] @ T[:3, :3].T, j[ok]
-        q, n_q = xyz_b[j], normals_b[j]
-        agree = np.einsum("ni,ni->n", n_p, n_q) > 0.5  # the same side of the same surface
-        p, n_p, q, n_q, ok, j = p[agree], n_p[agree], q[agree], n_q[agree], ok[agree], j[agree]
-        if len(p) < 6:
-            break
-        n = n_p + n_q
-        n /= np.linalg.norm(n, axis=1, keepdims=True)
-        r = np.einsum("ni,ni->n", p - q, n)
-        J = np.hstack([np.cross(p, n) + np.cross(n_p, p - q), n])
-        w = _tukey(r, kernel)
-        H, g = (J * w[:, None]).T @ J, (J * w[:, None]).T @ r
-        if gradient_b is not None:
-            d = gradient_b[j]  # in q's tangent plane
-            on_plane = p - np.einsum("ni,ni->n", p - q, n_q)[:, None] * n_q
-            r_c = a.fine_intensity[ok] - b.fine_intensity[j] - np.einsum("ni,ni->n", d,
-                                                                           on_plane - q)
-            J_c = -np.hstack([np.cross(p, d), d])
-            w_c = _tukey(r_c, _COLOR_KERNEL)
-            H = _LAMBDA_GEOMETRIC * H + (1.0 - _LAMBDA_GEOMETRIC) * (J_c * w_c[:, None]).T @ J_c
-            g = _LAMBDA_GEOMETRIC * g + (1.0 - _LAMBDA_GEOMETRIC) * (J_c * w_c[:, None]).T @ r_c
-        try:
-            delta = -np.linalg.solve(H + 1e-9 * np.eye(6), g)
-        except np.linalg.LinAlgError:
-            break
-        step = np.eye(4)
-        step[:3, :3], step[:3, 3] = so3_exp(delta[:3]), delta[3:]
-        T = step @ T
-        if np.linalg.norm(delta) < tol:
-            break
-    return T
-
-
-def _tukey(r: np.ndarray, k: float) -> np.ndarray:
-    """Tukey biweight weights of residuals r for kernel width k."""
-    return np.where(np.abs(r) < k, (1.0 - (r / k) ** 2) ** 2, 0.0)
+    T = icp(a, b, T_init, False, params.max_distance, params.voxel_size)
+    return icp(a, b, T, True, params.voxel_size, 0.4 * params.voxel_size)
 
 
 def _evaluate(a: _View, b: _View, T_dst_src: np.ndarray, params: RegistrationParams,

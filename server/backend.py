@@ -303,6 +303,10 @@ class Backend:
         loops = [lp for lp in self.loops if lp.accepted and lp.agent_a in trajectories
                  and lp.agent_b in trajectories and self.groups.same_group(lp.agent_a, lp.agent_b)]
         for lp in loops:
+            if lp.information is not None:
+                graph.add_loop(lp.agent_a, lp.kf_a, lp.agent_b, lp.kf_b, np.asarray(lp.T_a_b),
+                               information=np.asarray(lp.information), loop_id=lp.loop_id)
+                continue
             sig_t, sig_r = loop_sigmas(self.pg_cfg.loop_sigma_t, self.pg_cfg.loop_sigma_r,
                                        max(lp.rmse, 0.0), min(max(lp.fitness, 1e-3), 1.0))
             graph.add_loop(lp.agent_a, lp.kf_a, lp.agent_b, lp.kf_b, np.asarray(lp.T_a_b),

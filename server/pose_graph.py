@@ -408,6 +408,11 @@ class PoseGraph:
             result.loop_chi2[edge.loop_id] = chi2
             inlier = chi2 <= CHI2_6DOF_95
             (result.inlier_loops if inlier else result.outlier_loops).append(edge.loop_id)
+            if not inlier:
+                logger.info("pose graph: loop %s %s-%s disagrees with the rest (chi2 %.1f above "
+                            "%.1f): %s", edge.loop_id, self._names[edge.key_a],
+                            self._names[edge.key_b], chi2, CHI2_6DOF_95,
+                            "rejected" if self.robust_kernel == "gnc" else "down-weighted")
         logger.info(
             "pose graph: %d nodes, %d edges, %d loops (%d outliers), error %.4g -> %.4g, "
             "%d components",

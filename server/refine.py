@@ -13,7 +13,7 @@ coarse registration gives ``T_a_b`` (b's camera frame into a's). The refiner
    against the sub-map (`cpslam.common.field.tracking.Tracker`, the agent's tracker: depth L1
    with the outlier mask, ``loop.register_iters`` Adam steps, best-loss pose kept);
 3. recomputes the geometric verification of the registration for both poses
-   (`cpslam.server.registration.verify` on the two keyframes: overlap, RMS point-to-plane
+   (`cpslam.common.registration.verify` on the two keyframes: overlap, RMS point-to-plane
    residual, free space, colour) and the tracking loss against the sub-map on pixels drawn
    afresh (not the batch the tracker minimised). The refined pose is used when it passes the
    verification and neither its residual nor its loss is worse than the coarse pose's;
@@ -50,7 +50,7 @@ from cpslam.common.camera import Intrinsics
 from cpslam.common.field import Decoders, NeuralPointMap, RaySampler
 from cpslam.common.field.tracking import Tracker
 from cpslam.common.geometry import compose, invert
-from cpslam.server.registration import Registration, RegistrationParams, verify
+from cpslam.common.registration import Registration, RegistrationParams, verify
 
 if TYPE_CHECKING:
     from cpslam.common.config import CpslamConfig

@@ -70,6 +70,10 @@ class LoopRecord:
     outlier: bool = False
     method: str = ""  # how T_a_b was found: "ransac+icp", "render" (refined), "coarse" (kept)
     refinement: dict | None = None  # what `PoseRefiner` did (JSON-able)
+    # Information [6, 6] of T_a_b (right perturbation, translation first): the registration's
+    # times loop.information_scale; None when the registration gave none (sigmas from
+    # overlap and residual then).
+    information: list | None = None
 
 
 class LoopVerifier:
@@ -199,6 +203,7 @@ class LoopVerifier:
             stamp=self.now() - self.t_start, seconds=time.perf_counter() - t0,
             method=getattr(reg, "method", ""),
             refinement=(getattr(reg, "details", None) or {}).get("refinement"),
+            information=_information(reg, self.loop_cfg.information_scale),
         )
         self.records.append(record)
         if not unavailable:  # (an unavailable pair's last try was recorded above)
@@ -259,6 +264,18 @@ def _pair(c: Candidate) -> tuple[str, int, str, int]:
     return (*min(a, b), *max(a, b))
 
 
+def _information(reg: Any, scale: float) -> list | None:
+    """The registration's information matrix times `scale`, when it is positive definite."""
+    info = getattr(reg, "information", None)
+    if info is None or not getattr(reg, "success", False):
+        return None
+    info = scale * np.asarray(info, dtype=np.float64)
+    info = 0.5 * (info + info.T)
+    if not np.all(np.isfinite(info)) or np.linalg.eigvalsh(info).min() <= 0:
+        return None
+    return info.tolist()
+
+
 def _judge(reg: Any, cfg: LoopConfig) -> str:
     """Empty when the registration passes the thresholds, else why not."""
     if not reg.success:
@@ -279,7 +296,7 @@ def _default_database(loop: LoopConfig) -> LoopDatabase:
 def _default_register(loop: LoopConfig, seed: int) -> Callable[[KeyframeImage, KeyframeImage],
                                                                 Any]:
     def register(src: KeyframeImage, dst: KeyframeImage) -> Any:
-        from cpslam.server.registration import RegistrationParams, register_rgbd, verify
+        from cpslam.common.registration import RegistrationParams, register_rgbd, verify
 
         params = RegistrationParams.from_config(loop, seed)
         if loop.coarse_method == "none":

@@ -23,10 +23,10 @@ from cpslam.common.config.collab import (
     RefinementConfig,
 )
 from cpslam.common.geometry import compose, invert, se3_exp
+from cpslam.common.registration import Registration
 from cpslam.protocol import FramePoses, KeyframeImage, KeyframeMsg, ServerUpdate
 from cpslam.server.backend import Backend
 from cpslam.server.loops import DescriptorDatabase, LoopCandidate
-from cpslam.server.registration import Registration
 
 FRAMES = 120
 KF_EVERY = 10
@@ -259,7 +259,7 @@ def test_coarse_method_none_refines_from_the_identity(scenario):
     """No coarse stage (the paper): the refinement starts at the identity and is run although
     the identity itself fails verification; without a refiner the pair is judged at the
     identity."""
-    from cpslam.server.registration import RegistrationParams, verify
+    from cpslam.common.registration import RegistrationParams, verify
 
     truth, kfs, intr = scenario["truth"], scenario["kfs"], scenario["intr"]
     T_true = compose(invert(truth[kfs[5]]), truth[kfs[0]])  # T_a_b of the pair (5, 0)

@@ -115,6 +115,21 @@ def test_false_loop_is_ignored_and_flagged(scene, kernel):
     assert result.loop_chi2["false"] > 100 * CHI2_6DOF_95
 
 
+@pytest.mark.parametrize("kernel", ["cauchy", "gnc"])
+def test_a_true_loop_measured_30cm_off_changes_the_result_by_under_10_percent(scene, kernel):
+    """A loop between the right keyframes whose measurement is 30 cm off (a registration
+    that slid), with the sigmas of the good loops: rejected or down-weighted, flagged."""
+    gt, meas, track, loops = scene
+    i, j, T = loops[len(loops) // 2]
+    clean = rmse(keyframe_poses(build(scene, kernel).optimize()), gt)
+    graph = build(scene, kernel)
+    bad = T @ se3_exp(np.r_[0.3, 0.0, 0.0, 0.0, 0.0, 0.0])
+    graph.add_loop("a", i, "a", j, bad, sigma_t=0.02, sigma_r=0.01, loop_id="bad")
+    result = graph.optimize()
+    assert rmse(keyframe_poses(result), gt) < 1.1 * clean
+    assert "bad" in result.outlier_loops
+
+
 def test_reset_estimate_starts_again_from_the_initial_poses(scene):
     gt, _, track, _ = scene
     graph = build(scene, "none")

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from cpslam.common.geometry import compose, invert, pose_error, se3_exp
-from cpslam.server.registration import Registration, RegistrationParams, register_rgbd, verify
+from cpslam.common.registration import Registration, RegistrationParams, register_rgbd, verify
 
 W, H = 160, 120
 TARGET_A = np.array([4.5, 4.2, 0.8])  # a furnished corner of the synthetic room (seed 0)
