@@ -78,5 +78,7 @@ def tracker_args_from_config(
         var_factor=tr.outlier_var_factor, keep_best=tr.keep_best,
         early_stop_tol=tr.early_stop_tol, k=field_cfg.k_neighbors, radius=field_cfg.radius,
         backend=field_cfg.neighbour_backend, chunk=field_cfg.chunk_rays,
-        pixel_sampling=tr.pixel_sampling,
+        pixel_sampling=tr.pixel_sampling, method=tr.method, prior_sigma_t=tr.prior_sigma_t,
+        prior_sigma_r=tr.prior_sigma_r, reference_weight=tr.reference_weight,
+        reference_pixels=tr.reference_pixels,
     )

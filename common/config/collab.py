@@ -71,6 +71,8 @@ class LoopConfig(Section):
     """Largest accepted RMS point-to-plane residual of a loop after alignment (m)."""
     verify_min_overlap: float = Field(default=0.3, ge=0.0, le=1.0)
     """A loop is accepted when at least this fraction of the smaller view's points overlaps."""
+    information_scale: PositiveFloat = 1.0
+    """Factor on a loop's registration information (its points' errors are not independent)."""
 
     @model_validator(mode="after")
     def _check(self) -> LoopConfig:

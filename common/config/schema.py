@@ -21,6 +21,7 @@ from cpslam.common.config.slam import (
     FieldConfig,
     KeyframesConfig,
     MappingConfig,
+    RecoveryConfig,
     TrackingConfig,
 )
 
@@ -34,6 +35,7 @@ __all__ = [
     "MappingConfig",
     "PlaceRecognitionConfig",
     "PoseGraphConfig",
+    "RecoveryConfig",
     "RefinementConfig",
     "RunConfig",
     "TrackingConfig",
@@ -50,6 +52,8 @@ class CpslamConfig(Section):
     """The neural point field: points, features, decoders and ray sampling."""
     tracking: TrackingConfig = TrackingConfig()
     """Camera tracking against the rendered map."""
+    recovery: RecoveryConfig = RecoveryConfig()
+    """Tracking failure detection and recovery (the paper has none)."""
     mapping: MappingConfig = MappingConfig()
     """Map optimisation: features and decoders."""
     keyframes: KeyframesConfig = KeyframesConfig()

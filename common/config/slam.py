@@ -15,7 +15,8 @@ from pydantic import (
 
 from cpslam.common.config.base import Section
 
-__all__ = ["CameraConfig", "FieldConfig", "KeyframesConfig", "MappingConfig", "TrackingConfig"]
+__all__ = ["CameraConfig", "FieldConfig", "KeyframesConfig", "MappingConfig", "RecoveryConfig",
+           "TrackingConfig"]
 
 
 class CameraConfig(Section):
@@ -126,8 +127,10 @@ class FieldConfig(Section):
 class TrackingConfig(Section):
     """Camera tracking against the rendered map."""
 
+    method: Literal["adam", "lm"] = "adam"
+    """Pose optimiser: Adam on the loss (the paper) or Levenberg-Marquardt (robust, converges)."""
     iters: PositiveInt = 100
-    """Optimisation steps per frame (the paper does not state it; 100 is our choice)."""
+    """Optimisation steps per frame, at most ("lm": solves; the paper does not state it)."""
     n_pixels: PositiveInt = 1500
     """Pixels sampled per step (M2)."""
     lr: PositiveFloat = 0.0015
@@ -139,7 +142,15 @@ class TrackingConfig(Section):
     init: Literal["zero_motion", "constant_velocity"] = "zero_motion"
     """Initial pose of a new frame: the previous pose (the paper) or a constant-velocity guess."""
     color_weight: NonNegativeFloat = 0.0
-    """Weight of the colour L1 term in the tracking loss (0 = depth only, the paper)."""
+    """Weight of the colour term (adam: L1 of RGB; lm: normalised luminance) (0 = the paper)."""
+    prior_sigma_t: PositiveFloat = 0.05
+    """lm: sigma (m) of the prior holding the pose at its initial guess where data is silent."""
+    prior_sigma_r: PositiveFloat = 0.05
+    """lm: sigma (rad) of the prior holding the rotation at its initial guess."""
+    reference_weight: NonNegativeFloat = 0.0
+    """lm: weight of luminance and depth residuals against the latest keyframe (0 = off)."""
+    reference_pixels: PositiveInt = 2000
+    """lm: pixels of the frame compared with the latest keyframe."""
     outlier_err_lo: NonNegativeFloat = 0.1
     """Pixels with depth error below this multiple of the median error are masked."""
     outlier_err_hi: PositiveFloat = 10.0
@@ -159,6 +170,29 @@ class TrackingConfig(Section):
                 f"outlier_err_hi ({self.outlier_err_hi})"
             )
         return self
+
+
+class RecoveryConfig(Section):
+    """Tracking failure detection and recovery (the paper has none)."""
+
+    enabled: bool = False
+    """Check every tracked frame and re-track a suspect one from other initial guesses."""
+    residual_jump: PositiveFloat = 3.0
+    """Suspect when the median depth error exceeds this multiple of the recent frames' median."""
+    min_inliers: float = Field(default=0.5, ge=0.0, le=1.0)
+    """Suspect when the tracking loss kept less than this share of the frame's pixels."""
+    max_jump_t: PositiveFloat = 0.05
+    """Suspect when the pose is this far (m) from the motion model's prediction."""
+    max_jump_r: PositiveFloat = 0.05
+    """Suspect when the pose is rotated this much (rad) from the motion model's prediction."""
+    window: PositiveInt = 20
+    """Healthy frames whose median depth error sets the reference for residual_jump."""
+    iters_factor: PositiveFloat = 2.0
+    """Re-tracking runs this many times tracking.iters steps from each other guess."""
+    geometric_guess: bool = True
+    """Also re-track from a frame-to-frame RGB-D odometry estimate (Open3D, multi-scale)."""
+    relocalise: bool = True
+    """When every guess fails, register the frame against recent keyframes and track from there."""
 
 
 class MappingConfig(Section):

@@ -1,5 +1,15 @@
-"""Camera tracking against the neural point map: the pose that makes the rendered depth match
-the observed one.
+"""Camera tracking against the neural point map: the pose that makes the rendered depth (and,
+with a colour weight, colour) match the observed one.
+
+Two optimisers (`method`):
+
+- "adam" (the paper): first-order steps on an se(3) increment, described below;
+- "lm": Levenberg-Marquardt on robustly weighted depth and luminance residuals with a weak
+  prior at the initial guess (`cpslam.common.field.pose_lm`). It converges in a few steps,
+  stops when the pose no longer moves, and leaves directions the image cannot constrain at
+  the initial guess, where Adam, which normalises every coordinate's step, moves them by its
+  learning rate whatever the size of their gradient. With a colour weight it runs twice:
+  depth alone from the initial guess, then depth and luminance from there.
 
 Per frame, `n_pixels` pixels with valid depth and their ray samples are drawn once (from the
 caller's generator), so the loss is a deterministic function of the pose: keeping the
@@ -18,6 +28,9 @@ The map is fixed while tracking, so the neighbour search of the samples is reuse
 steps until the pose has moved the farthest sample by more than `reuse_neighbours` metres
 (the decoders still see exact offsets x - p_k, recomputed in torch every step).
 
+With "adam" the pose is the initial guess times an se(3) increment as above; "lm" uses the
+same pixels and samples and ignores lr, lr_end_factor, keep_best, early_stop_tol and err_lo.
+
 Used by the agent (every frame against its own map) and by the server (a loop keyframe against
 another agent's sub-map, `cpslam.server.refine`), so it lives with the field in `common/`.
 """
@@ -33,7 +46,9 @@ import numpy as np
 import torch
 
 from cpslam.common.field.decoders import Decoders
+from cpslam.common.field.image_terms import ReferenceImage
 from cpslam.common.field.points import NeuralPointMap
+from cpslam.common.field.pose_lm import LMSettings, solve_pose_lm
 from cpslam.common.field.renderer import camera_rays, render_samples
 from cpslam.common.field.sampler import RaySampler
 from cpslam.common.geometry_torch import torch_se3_exp
@@ -44,6 +59,9 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 _PIXEL_SAMPLING = ("uniform", "stratified")
+_METHODS = ("adam", "lm")
+# Fixed scales of `Tracker.score` (m, luminance) and the error a pixel off the map counts as.
+_SCORE_DEPTH, _SCORE_COLOR, _SCORE_MISS = 0.02, 0.05, 3.0
 
 __all__ = ["TrackResult", "Tracker", "outlier_mask", "sample_pixels"]
 
@@ -53,8 +71,12 @@ class TrackResult:
     """Outcome of tracking one frame.
 
     T_world_cam: [4, 4] float64 the chosen pose; iters: optimisation steps run; loss: the
-    loss at the chosen pose (best or last evaluated); best_iter: step whose pose was chosen;
-    losses: loss of every step (at the pose before that step's update).
+    loss at the chosen pose (best or last evaluated; "lm": robust cost per kept pixel);
+    best_iter: step whose pose was chosen; losses: loss of every step (at the pose before
+    that step's update; "lm": at every linearisation point); inlier_ratio: share of the drawn
+    pixels the loss kept at the chosen pose; residual_m: median absolute depth error (m) of
+    the pixels whose rays reach the map, at the chosen pose; information: [6, 6]
+    Gauss-Newton information of the pose increment (translation first, "lm" only, else None).
     """
 
     T_world_cam: np.ndarray
@@ -62,6 +84,9 @@ class TrackResult:
     loss: float
     best_iter: int
     losses: list[float] = field(default_factory=list)
+    inlier_ratio: float = math.nan
+    residual_m: float = math.nan
+    information: np.ndarray | None = None
 
 
 class Tracker:
@@ -86,6 +111,12 @@ class Tracker:
             redone (0 = search at every step).
         pixel_sampling: "uniform" (the paper: independent draws among the valid pixels) or
             "stratified" (one draw per cell of a grid over the image, see `sample_pixels`).
+        method: "adam" (the paper) or "lm" (Levenberg-Marquardt, see the module docstring).
+        prior_sigma_t, prior_sigma_r: "lm" only: standard deviations (m, rad) of the prior
+            that holds the pose at its initial guess where the image does not constrain it.
+        reference_weight, reference_pixels: "lm" only: weight of the residuals against a
+            reference view (`track`'s `reference`, see `cpslam.common.field.image_terms`)
+            and how many of the frame's pixels enter them (0 = off).
     """
 
     def __init__(
@@ -108,6 +139,11 @@ class Tracker:
         chunk: int | None = None,
         reuse_neighbours: float = 0.01,
         pixel_sampling: str = "uniform",
+        method: str = "adam",
+        prior_sigma_t: float = 0.05,
+        prior_sigma_r: float = 0.05,
+        reference_weight: float = 0.0,
+        reference_pixels: int = 2000,
     ) -> None:
         if iters < 1 or n_pixels < 1 or lr <= 0:
             raise ValueError(f"Tracker: need iters >= 1, n_pixels >= 1, lr > 0; got {iters}, "
@@ -120,6 +156,14 @@ class Tracker:
         if pixel_sampling not in _PIXEL_SAMPLING:
             raise ValueError(f"Tracker: pixel_sampling must be one of {_PIXEL_SAMPLING}, got "
                              f"{pixel_sampling!r}")
+        if method not in _METHODS:
+            raise ValueError(f"Tracker: method must be one of {_METHODS}, got {method!r}")
+        if not (prior_sigma_t > 0 and prior_sigma_r > 0):
+            raise ValueError(f"Tracker: prior sigmas must be > 0, got {prior_sigma_t}, "
+                             f"{prior_sigma_r}")
+        self.method = method
+        self.reference_weight, self.reference_pixels = reference_weight, reference_pixels
+        self.prior_sigma_t, self.prior_sigma_r = prior_sigma_t, prior_sigma_r
         self.pixel_sampling = pixel_sampling
         self.intrinsics = intrinsics
         self.sampler = sampler
@@ -142,13 +186,17 @@ class Tracker:
         depth: torch.Tensor,
         T_init: np.ndarray,
         generator: torch.Generator,
+        iters: int | None = None,
+        reference: ReferenceImage | None = None,
     ) -> TrackResult:
         """Optimise the pose of one frame.
 
         rgb: float [H, W, 3] in [0, 1] (only read when color_weight > 0); depth: float32
         [H, W] metres, 0 = invalid; T_init: [4, 4] initial T_world_cam; generator: draws the
-        pixels and sample jitter.
+        pixels and sample jitter; iters: steps for this call (default: the tracker's);
+        reference: a view ("lm" with reference_weight > 0) the frame is also compared with.
         """
+        iters = self.iters if iters is None else int(iters)
         if tuple(depth.shape) != self.intrinsics.shape:
             raise ValueError(f"Tracker.track: depth is {tuple(depth.shape)}, the intrinsics "
                              f"say {self.intrinsics.shape}")
@@ -160,6 +208,12 @@ class Tracker:
         depth_obs = depth[v, u]
         color_obs = rgb[v, u] if self.color_weight > 0 else None
         t = self.sampler(depth_obs, generator)
+        if self.method == "lm":
+            terms = None
+            if reference is not None and self.reference_weight > 0:
+                terms = self._reference_points(rgb, depth, generator, reference)
+            return self._track_lm(point_map, decoders, u, v, t, depth_obs, color_obs, T_init,
+                                  iters, terms)
         t_far = float(t.max())
         index = point_map.neighbour_index(self.backend)
         features = point_map.features.detach()  # the map is fixed: no feature gradients
@@ -171,10 +225,12 @@ class Tracker:
         cached: tuple[torch.Tensor, torch.Tensor] | None = None  # (xi at search, neighbours)
         losses: list[float] = []
         best = (math.inf, xi.detach().clone(), 0)
+        kept: list[float] = []  # share of the pixels the mask kept, per step
+        medians: list[float] = []  # median depth error of the pixels reaching the map
         try:
-            for it in range(self.iters):
+            for it in range(iters):
                 optimiser.param_groups[0]["lr"] = self.lr * self.lr_end_factor ** (
-                    it / max(self.iters - 1, 1))
+                    it / max(iters - 1, 1))
                 T = T0 @ torch_se3_exp(xi)
                 rays_o, rays_d = camera_rays(self.intrinsics, T, u, v)
                 if cached is None or _motion_bound(xi.detach() - cached[0], t_far) \
@@ -192,6 +248,10 @@ class Tracker:
                 if not bool(mask.any()):
                     logger.debug("tracking: every pixel masked at step %d, stopping", it)
                     break
+                hit = out["acc"].detach() > 0.5
+                kept.append(float(mask.float().mean()))
+                medians.append(float(err.detach()[hit].median()) if bool(hit.any())
+                               else math.inf)
                 loss = err[mask].mean()
                 if color_obs is not None:
                     loss = loss + self.color_weight * (out["color"] - color_obs)[mask].abs().mean()
@@ -217,7 +277,91 @@ class Tracker:
                 len(losses)
         with torch.no_grad():
             T_out = (T0 @ torch_se3_exp(xi_out)).cpu().numpy()
-        return TrackResult(T_out, len(losses), float(loss_out), best_iter, losses)
+        at = min(best_iter, len(kept) - 1)
+        ratio, residual = (kept[at], medians[at]) if kept else (0.0, math.inf)
+        return TrackResult(T_out, len(losses), float(loss_out), best_iter, losses, ratio,
+                           residual)
+
+    def _reference_points(self, rgb: torch.Tensor, depth: torch.Tensor,
+                          generator: torch.Generator, reference: ReferenceImage
+                          ) -> tuple[ReferenceImage, torch.Tensor, torch.Tensor]:
+        """The frame's pixels for the reference terms: back-projected points and luminance."""
+        intr = self.intrinsics
+        u, v = sample_pixels(depth, self.reference_pixels, generator, stratified=True)
+        d = depth[v, u].double()
+        xyz = torch.stack(((u.double() - intr.cx) / intr.fx * d,
+                           (v.double() - intr.cy) / intr.fy * d, d), dim=-1)
+        return reference, xyz.to(depth.device), rgb[v, u].double().mean(-1)
+
+    @torch.no_grad()
+    def score(
+        self,
+        point_map: NeuralPointMap,
+        decoders: Decoders,
+        rgb: torch.Tensor,
+        depth: torch.Tensor,
+        poses: list[np.ndarray],
+        generator: torch.Generator,
+    ) -> list[float]:
+        """One robust cost per candidate pose of this frame, on one common set of pixels and
+        samples and with fixed scales, so candidates found in different ways compare (lower
+        is better): the mean Huber cost of the depth error over `_SCORE_DEPTH` metres plus,
+        with a colour weight, that of the luminance error over `_SCORE_COLOR`; a pixel whose
+        ray reaches no map point costs as an error of `_SCORE_MISS` scales."""
+        u, v = sample_pixels(depth, self.n_pixels, generator,
+                             stratified=self.pixel_sampling == "stratified")
+        depth_obs = depth[v, u]
+        gray_obs = rgb[v, u].mean(-1) if self.color_weight > 0 else None
+        t = self.sampler(depth_obs, generator)
+        index = point_map.neighbour_index(self.backend)
+        out_scores = []
+        for T in poses:
+            T_t = torch.as_tensor(np.asarray(T, dtype=np.float64), device=point_map.device)
+            rays_o, rays_d = camera_rays(self.intrinsics, T_t, u, v)
+            x = rays_o[:, None, :] + t[..., None] * rays_d[:, None, :]
+            neighbours = index.query(x.reshape(-1, 3), self.k, self.radius)
+            out = render_samples(point_map, decoders, rays_o, rays_d, t, self.k, self.radius,
+                                 backend=self.backend, chunk=self.chunk, neighbours=neighbours,
+                                 color=gray_obs is not None)
+            miss = out["acc"] <= 0.5
+            err = ((out["depth"] - depth_obs) / _SCORE_DEPTH).masked_fill(miss, _SCORE_MISS)
+            cost = _huber(err).mean()
+            if gray_obs is not None:
+                err_c = ((out["color"].mean(-1) - gray_obs) / _SCORE_COLOR).masked_fill(
+                    miss, _SCORE_MISS)
+                cost = cost + self.color_weight * _huber(err_c).mean()
+            out_scores.append(float(cost))
+        return out_scores
+
+    def _track_lm(self, point_map: NeuralPointMap, decoders: Decoders, u: torch.Tensor,
+                  v: torch.Tensor, t: torch.Tensor, depth_obs: torch.Tensor,
+                  color_obs: torch.Tensor | None, T_init: np.ndarray, iters: int,
+                  reference: tuple | None = None) -> TrackResult:
+        settings = LMSettings(
+            iters=iters, color_weight=self.color_weight, err_hi=self.err_hi,
+            var_factor=self.var_factor, k=self.k, radius=self.radius, backend=self.backend,
+            chunk=self.chunk, reuse_neighbours=self.reuse_neighbours,
+            prior_sigma_t=self.prior_sigma_t, prior_sigma_r=self.prior_sigma_r,
+            reference_weight=self.reference_weight)
+        intr = self.intrinsics
+        gray = None if color_obs is None else color_obs.mean(-1)
+        decoders.requires_grad_(False)
+        try:
+            T_start = T_init
+            if gray is not None:
+                # Depth first: its basin is wide (a rendered surface moves smoothly with the
+                # pose), while luminance is periodic on striped or tiled texture and, from a
+                # guess a degree off, pulls towards the wrong stripe.
+                first = solve_pose_lm(point_map, decoders, u, v, t, depth_obs, None, intr.fx,
+                                      intr.fy, intr.cx, intr.cy, T_init, settings)
+                T_start = first.T_world_cam
+            sol = solve_pose_lm(point_map, decoders, u, v, t, depth_obs, gray, intr.fx, intr.fy,
+                                intr.cx, intr.cy, T_start, settings, reference)
+        finally:
+            decoders.requires_grad_(True)
+        loss = sol.costs[-1] if sol.costs else math.nan
+        return TrackResult(sol.T_world_cam, sol.iters, loss, sol.iters, sol.costs,
+                           sol.inlier_ratio, sol.residual_m, sol.information)
 
 
 def sample_pixels(
@@ -271,6 +415,11 @@ def outlier_mask(
     mu = err.median()
     keep = (err >= err_lo * mu) & (err <= err_hi * mu)
     return keep & (var <= var_factor * var.median())
+
+
+def _huber(x: torch.Tensor) -> torch.Tensor:
+    a = x.abs()
+    return torch.where(a <= 1.0, 0.5 * x * x, a - 0.5)
 
 
 def _motion_bound(dxi: torch.Tensor, t_far: float) -> float:
