@@ -1,4 +1,5 @@
-"""Keyframes of one agent: pose, a small RGB-D copy, the map points anchored to them, and
+"""Keyframes of one agent: pose, a small RGB-D copy, the full-size images (PNG-compressed,
+for loop registration and relocalisation), the map points anchored to them, and
 co-visibility by projected overlap.
 
 Co-visibility needs 3-D points of each keyframe that move with its pose. The store keeps a
@@ -19,7 +20,7 @@ import cv2
 import numpy as np
 import torch
 
-from cpslam.common.camera import Intrinsics
+from cpslam.common.camera import Intrinsics, resize_depth
 
 logger = logging.getLogger(__name__)
 
@@ -28,6 +29,8 @@ __all__ = ["Keyframe", "KeyframeStore", "downsample_rgbd"]
 FORMAT_VERSION = 1
 # Back-projected depth samples kept per keyframe for co-visibility (a grid over the image).
 _OVERLAP_GRID = (12, 16)
+DEPTH_SCALE = 5000.0
+"""Units per metre of the stored full-size depth (0.2 mm steps, up to 13.1 m)."""
 
 
 @dataclass
@@ -44,6 +47,8 @@ class Keyframe:
         point_ids: int64 [M], ids of the map points anchored to this keyframe.
         xyz_cam: float32 [P, 3] sparse depth samples in this keyframe's camera frame
             (co-visibility).
+        rgb_png, depth_png: the processed frame's colour and depth (uint16, 1/DEPTH_SCALE
+            metres) as PNG bytes (uint8 [B]); `KeyframeStore.full_rgbd` decodes them.
     """
 
     kf_id: int
@@ -54,6 +59,8 @@ class Keyframe:
     depth_small: np.ndarray
     point_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     xyz_cam: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), dtype=np.float32))
+    rgb_png: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.uint8))
+    depth_png: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.uint8))
 
 
 class KeyframeStore:
@@ -123,11 +130,25 @@ class KeyframeStore:
             rgb_small=rgb_small,
             depth_small=depth_small,
             xyz_cam=_overlap_points(depth_small, self.intrinsics_small),
+            rgb_png=_png(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)),
+            depth_png=_png(_depth_units(depth)),
         )
         self._frames[kf.kf_id] = kf
         logger.debug("keyframe %d from frame %d (%d overlap points)", kf.kf_id, frame_index,
                      len(kf.xyz_cam))
         return kf
+
+    def full_rgbd(self, kf_id: int) -> tuple[np.ndarray, np.ndarray]:
+        """The keyframe's full-size rgb uint8 [H, W, 3] and depth float32 [H, W] (metres, to
+        1/DEPTH_SCALE), decoded from the stored PNGs (intrinsics: `self.intrinsics`)."""
+        kf = self.get(kf_id)
+        if not len(kf.rgb_png) or not len(kf.depth_png):
+            raise KeyError(f"keyframe {kf_id} has no full-size images (saved before they were "
+                           "kept)")
+        bgr = cv2.imdecode(kf.rgb_png, cv2.IMREAD_COLOR)
+        units = cv2.imdecode(kf.depth_png, cv2.IMREAD_UNCHANGED)
+        return (np.ascontiguousarray(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)),
+                units.astype(np.float32) / DEPTH_SCALE)
 
     def set_pose(self, kf_id: int, T_world_cam: np.ndarray) -> None:
         """Correct a keyframe's pose (the map's pose table is the caller's to update)."""
@@ -197,6 +218,8 @@ class KeyframeStore:
                     "depth_small": torch.from_numpy(kf.depth_small.copy()),
                     "point_ids": torch.from_numpy(kf.point_ids.copy()),
                     "xyz_cam": torch.from_numpy(kf.xyz_cam.copy()),
+                    "rgb_png": torch.from_numpy(kf.rgb_png.copy()),
+                    "depth_png": torch.from_numpy(kf.depth_png.copy()),
                 }
                 for kf in frames
             ],
@@ -224,6 +247,10 @@ class KeyframeStore:
                 depth_small=item["depth_small"].numpy().astype(np.float32),
                 point_ids=item["point_ids"].numpy().astype(np.int64),
                 xyz_cam=item["xyz_cam"].numpy().astype(np.float32),
+                rgb_png=item["rgb_png"].numpy().astype(np.uint8) if "rgb_png" in item
+                else np.zeros(0, np.uint8),
+                depth_png=item["depth_png"].numpy().astype(np.uint8) if "depth_png" in item
+                else np.zeros(0, np.uint8),
             )
             small = self.intrinsics_small.shape
             if kf.T_world_cam.shape != (4, 4) or kf.depth_small.shape != small:
@@ -237,12 +264,25 @@ class KeyframeStore:
 def downsample_rgbd(
     rgb: np.ndarray, depth: np.ndarray, small: Intrinsics
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Resize an RGB-D pair to `small`'s size: colour by area, depth by nearest neighbour (no
-    mixing of depths across edges or with invalid zeros)."""
+    """Resize an RGB-D pair to `small`'s size: colour by area, depth by `resize_depth` (no
+    mixing of depths across edges or with invalid zeros, sampled where the intrinsics say)."""
     size = (small.width, small.height)
     rgb_small = cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
-    depth_small = cv2.resize(depth, size, interpolation=cv2.INTER_NEAREST)
+    depth_small = resize_depth(depth, size)
     return np.ascontiguousarray(rgb_small), np.ascontiguousarray(depth_small, dtype=np.float32)
+
+
+def _png(image: np.ndarray) -> np.ndarray:
+    ok, data = cv2.imencode(".png", image)
+    if not ok:
+        raise ValueError("PNG encoding of a keyframe image failed")
+    return data.reshape(-1)
+
+
+def _depth_units(depth: np.ndarray) -> np.ndarray:
+    """Depth in metres as uint16 units of 1/DEPTH_SCALE (0 where invalid or beyond range)."""
+    units = np.round(np.nan_to_num(depth, nan=0.0) * DEPTH_SCALE)
+    return np.where((units > 0) & (units < 65535), units, 0).astype(np.uint16)
 
 
 def _overlap_points(depth: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:

@@ -31,6 +31,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
+from cpslam.agent.keyframes import DEPTH_SCALE
 from cpslam.common.geometry import compose, invert
 from cpslam.protocol import (
     Ack,
@@ -284,19 +285,24 @@ class AgentLink:
         return True
 
     def answer_image(self, request: KeyframeImageRequest) -> KeyframeImage | ErrorReply:
-        """The keyframe's stored (downsampled) RGB-D copy with its intrinsics."""
+        """The keyframe's full-size RGB-D (the processed frame's) with its intrinsics; the
+        small copy for a keyframe saved without its full-size images."""
         store = self.odometry.keyframes
         if request.agent_id != self.agent_id or request.kf_id not in store:
             return ErrorReply(code="not_found", reason=f"agent {self.agent_id} has no keyframe "
                               f"{request.agent_id}/{request.kf_id}")
         kf = store.get(request.kf_id)
-        intr = store.intrinsics_small
+        try:
+            rgb, depth = store.full_rgbd(kf.kf_id)
+            intr, scale = store.intrinsics, DEPTH_SCALE
+        except KeyError:
+            rgb, depth, intr, scale = kf.rgb_small, kf.depth_small, store.intrinsics_small, 1000.0
         self.stats["images"] += 1
         return KeyframeImage.from_metres(
-            kf.depth_small if request.want_depth else None, depth_scale=1000.0,
+            depth if request.want_depth else None, depth_scale=scale,
             agent_id=self.agent_id, kf_id=kf.kf_id, fx=intr.fx, fy=intr.fy, cx=intr.cx,
             cy=intr.cy, width=intr.width, height=intr.height, rgb_codec=self.image_codec,
-            jpeg_quality=self.jpeg_quality, rgb=kf.rgb_small if request.want_rgb else None)
+            jpeg_quality=self.jpeg_quality, rgb=rgb if request.want_rgb else None)
 
     # ------------------------------------------------------------------------- internals
 

@@ -2,9 +2,13 @@
 keyframe every `keyframes.every` frames.
 
 Order within one frame: (1) clip depth to [camera.depth_min, camera.depth_max]; (2) track
-against the map (the first frame defines the agent's world: identity); (3) on a keyframe
-frame, store the keyframe and enter its pose in the map's pose table; (4) on a mapping frame,
-add unexplained points and optimise on this frame plus the co-visible keyframes.
+against the map (the first frame defines the agent's world: identity) and, with the
+`recovery` section enabled, check the result and re-track a suspect frame from other guesses
+(`cpslam.agent.recovery`); (3) on a keyframe frame, store the keyframe and enter its pose in
+the map's pose table; (4) on a mapping frame, add unexplained points and optimise on this frame
+plus the co-visible keyframes. A frame whose tracking was lost is neither mapped nor made a
+keyframe: both wait for the next frame that tracks (keyframes come every `keyframes.every`
+frames, mapping every `mapping.every` frames, counted from the last one made).
 
 Anchoring: new points are anchored to the LATEST keyframe (the first frame is always keyframe
 0, so there is one). Between two keyframes the camera moves little, so points stay close to
@@ -17,6 +21,7 @@ from a torch.Generator seeded with (run.seed, frame index), so a CPU run is repr
 
 from __future__ import annotations
 
+import itertools
 import logging
 import time
 from dataclasses import dataclass
@@ -27,10 +32,12 @@ import torch
 
 from cpslam.agent.keyframes import KeyframeStore
 from cpslam.agent.mapper import Mapper, View
+from cpslam.agent.recovery import Frame, Recovery
 from cpslam.common.camera import Intrinsics
 from cpslam.common.datasets import RGBDFrame
 from cpslam.common.field import Decoders, FeatureCNN, NeuralPointMap
-from cpslam.common.field.tracking import Tracker
+from cpslam.common.field.image_terms import ReferenceImage
+from cpslam.common.field.tracking import Tracker, TrackResult
 from cpslam.common.field_config import (
     cnn_from_config,
     decoders_from_config,
@@ -55,7 +62,9 @@ class FrameResult:
 
     map_time_s is the whole mapping call (adding points, co-visibility, optimisation);
     map_optimise_time_s only its `map_steps` optimisation steps, so a per-step time is
-    map_optimise_time_s / map_steps.
+    map_optimise_time_s / map_steps. track_event is "" (tracked and healthy, or recovery
+    off), "recovered" or "lost" (see `cpslam.agent.recovery`); track_time_s includes the
+    recovery.
     """
 
     index: int
@@ -70,6 +79,9 @@ class FrameResult:
     n_points: int
     is_keyframe: bool
     kf_id: int | None
+    track_event: str = ""
+    track_inlier_ratio: float = float("nan")
+    track_residual_m: float = float("nan")
 
 
 class Odometry:
@@ -103,6 +115,7 @@ class Odometry:
         depth_max: float = 10.0,
         seed: int = 0,
         agent_id: int = 0,
+        recovery: Recovery | None = None,
     ) -> None:
         if init not in ("zero_motion", "constant_velocity"):
             raise ValueError(f"Odometry: init must be zero_motion or constant_velocity, "
@@ -123,11 +136,18 @@ class Odometry:
         self.depth_min, self.depth_max = depth_min, depth_max
         self.seed, self.agent_id = seed, agent_id
         self.device = point_map.device
+        self.recovery = recovery
         self.fused = False
-        self._last_rgbd: tuple[torch.Tensor, torch.Tensor] | None = None  # for `_refit`
+        self._last_frame: Frame | None = None  # for `_refit`
+        self._last_tracked: Frame | None = None  # the recovery's RGB-D odometry starts here
+        self._last_kf_count: int | None = None
+        # The latest keyframe's full-size images for tracking.reference_weight.
+        self._reference: tuple[int, ReferenceImage] | None = None
+        self._last_map_count: int | None = None
         self._stamps: list[float] = []
         self._indices: list[int] = []
         self._poses: list[np.ndarray] = []
+        self._tracked: list[bool] = []  # False for the frames whose tracking was lost
 
     @classmethod
     def from_config(
@@ -160,6 +180,8 @@ class Odometry:
             covisible_keyframes=mp.covisible_keyframes, pose_lr=mp.pose_lr, init=tr.init,
             depth_min=cfg.camera.depth_min, depth_max=cfg.camera.depth_max,
             seed=seed, agent_id=agent_id,
+            recovery=Recovery.from_config(cfg.recovery, tr.iters) if cfg.recovery.enabled
+            else None,
         )
 
     # ---------------------------------------------------------------------------- per frame
@@ -179,33 +201,43 @@ class Odometry:
         refit_steps, refit_time = self._refit(generator) if self.fused else (0, 0.0)
 
         t0 = time.perf_counter()
-        track_iters, track_loss = 0, 0.0
+        current = Frame(int(frame.index), rgb, depth, rgb_t, depth_t)
+        track_iters, track_loss, event = 0, 0.0, ""
+        inliers = residual = float("nan")
         if count == 0:
             T_world_cam = np.eye(4)
         else:
-            result = self.tracker.track(self.point_map, self.decoders, rgb_t, depth_t,
-                                        self._initial_pose(), generator)
+            result, event = self._track(current, generator)
             T_world_cam, track_iters, track_loss = result.T_world_cam, result.iters, result.loss
+            inliers, residual = result.inlier_ratio, result.residual_m
         track_time = time.perf_counter() - t0
 
         kf_id = None
-        if count % self.kf_every == 0:
+        healthy = event != "lost"
+        if healthy and (self._last_kf_count is None
+                        or count - self._last_kf_count >= self.kf_every):
             kf = self.keyframes.add(frame.index, frame.timestamp, T_world_cam, rgb, depth)
             self.point_map.set_keyframe_poses(kf.kf_id, T_world_cam, self.agent_id)
-            kf_id = kf.kf_id
+            kf_id, self._last_kf_count = kf.kf_id, count
+            self._set_reference(kf.kf_id, rgb_t, depth_t)
 
         map_time, map_steps, optimise_time = refit_time, refit_steps, refit_time
-        if count % self.map_every == 0:
+        if healthy and (self._last_map_count is None
+                        or count - self._last_map_count >= self.map_every):
             t1 = time.perf_counter()
             steps, seconds, T_world_cam = self._map(rgb, depth, rgb_t, depth_t, T_world_cam,
                                                     kf_id, count, generator)
             map_steps, optimise_time = map_steps + steps, optimise_time + seconds
             map_time += time.perf_counter() - t1
-        self._last_rgbd = (rgb_t, depth_t)
+            self._last_map_count = count
+        self._last_frame = current
+        if healthy:
+            self._last_tracked = current
 
         self._stamps.append(float(frame.timestamp))
         self._indices.append(int(frame.index))
         self._poses.append(np.asarray(T_world_cam, dtype=np.float64))
+        self._tracked.append(healthy)
         logger.debug("frame %d: track %d it loss %.4f (%.2f s), map %d steps (%.2f s), %d pts",
                      frame.index, track_iters, track_loss, track_time, map_steps, map_time,
                      len(self.point_map))
@@ -215,6 +247,8 @@ class Odometry:
             track_iters=track_iters, track_loss=track_loss, map_time_s=map_time,
             map_steps=map_steps, map_optimise_time_s=optimise_time,
             n_points=len(self.point_map), is_keyframe=kf_id is not None, kf_id=kf_id,
+            track_event=event, track_inlier_ratio=float(inliers),
+            track_residual_m=float(residual),
         )
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
@@ -251,13 +285,68 @@ class Odometry:
         ok = np.isfinite(depth) & (depth >= self.depth_min) & (depth <= self.depth_max)
         return np.ascontiguousarray(frame.rgb), np.where(ok, depth, 0.0).astype(np.float32)
 
+    def tracking_events(self) -> dict[str, int]:
+        """Counts of the recovery: frames found suspect, recovered, lost (empty when off)."""
+        if self.recovery is None:
+            return {}
+        return {k: int(self.recovery.counts.get(k, 0)) for k in ("suspect", "recovered", "lost")}
+
+    def _set_reference(self, kf_id: int, rgb_t: torch.Tensor, depth_t: torch.Tensor) -> None:
+        """Make keyframe kf_id the view frames are compared with (tracking.reference_weight)."""
+        if self.tracker.reference_weight <= 0:
+            return
+        intr = self.intrinsics
+        self._reference = (kf_id, ReferenceImage.from_rgbd(
+            rgb_t, depth_t, self.keyframes.get(kf_id).T_world_cam,
+            (intr.fx, intr.fy, intr.cx, intr.cy)))
+
+    def _guesses(self) -> dict[str, np.ndarray]:
+        """The motion models' initial poses of the next frame, from the last frames whose
+        tracking was not lost (a lost frame's pose would mislead them)."""
+        good = list(itertools.islice(
+            (i for i in range(len(self._poses) - 1, -1, -1) if self._tracked[i]), 2))
+        if not good:
+            return {"zero_motion": self._poses[-1].copy()}
+        previous = self._poses[good[0]]
+        guesses = {"zero_motion": previous.copy()}
+        if len(good) == 2 and good[0] - good[1] == 1:
+            # Repeat the last relative motion once per frame since: T_k = T_{k-1} M, with
+            # M = T_{k-2}^-1 T_{k-1}.
+            motion = np.linalg.inv(self._poses[good[1]]) @ previous
+            guess = previous
+            for _ in range(len(self._poses) - good[0]):
+                guess = guess @ motion
+            guesses["constant_velocity"] = guess
+        return guesses
+
     def _initial_pose(self) -> np.ndarray:
-        previous = self._poses[-1]
-        if self.init == "constant_velocity" and len(self._poses) >= 2:
-            # Repeat the last relative motion: T_k = T_{k-1} (T_{k-2}^-1 T_{k-1}).
-            motion = np.linalg.inv(self._poses[-2]) @ previous
-            return previous @ motion
-        return previous.copy()
+        guesses = self._guesses()
+        return guesses.get(self.init, guesses["zero_motion"])
+
+    def _track(self, current: Frame, generator: torch.Generator) -> tuple[TrackResult, str]:
+        """Track the frame from the configured guess; check and recover it (recovery on)."""
+        T_init = self._initial_pose()
+        # The recovery draws its pixels from a seed of its own (leaving `generator` to the
+        # mapping that follows, as without recovery).
+        seed = (self.seed * 1_000_003 + current.index) * 2 + 1
+        reference = None
+        if self._reference is not None and self._reference[0] in self.keyframes:
+            kf_id, reference = self._reference
+            reference.T_world_ref = self.keyframes.get(kf_id).T_world_cam  # corrections
+        result = self.tracker.track(self.point_map, self.decoders, current.rgb_t,
+                                    current.depth_t, T_init, generator, reference=reference)
+        if self.recovery is None:
+            return result, ""
+        guesses = self._guesses()
+        T_predicted = guesses.get("constant_velocity", guesses["zero_motion"])
+        reason = self.recovery.check(result, T_predicted)
+        if not reason:
+            self.recovery.accept(result)
+            return result, ""
+        outcome = self.recovery.recover(
+            self.tracker, self.point_map, self.decoders, current, result, reason, guesses,
+            self._last_tracked, guesses["zero_motion"], self.intrinsics, self.keyframes, seed)
+        return outcome.result, outcome.event
 
     def _map(self, rgb: np.ndarray, depth: np.ndarray, rgb_t: torch.Tensor,
              depth_t: torch.Tensor, T_world_cam: np.ndarray, kf_id: int | None, count: int,
@@ -288,10 +377,10 @@ class Odometry:
     def _refit(self, generator: torch.Generator) -> tuple[int, float]:
         """`mapping.iters_after_fusion` steps on the last frame (at its pose, which follows
         the server's corrections) and its co-visible keyframes; steps and seconds."""
-        if self._last_rgbd is None or not self._poses:
+        if self._last_frame is None or not self._poses:
             return 0, 0.0  # nothing to fit on (resumed): the next mapping call does it
         self.fused = False
-        rgb_t, depth_t = self._last_rgbd
+        rgb_t, depth_t = self._last_frame.rgb_t, self._last_frame.depth_t
         result = self.mapper.optimise(self.point_map, self.decoders,
                                       self._views(rgb_t, depth_t, self._poses[-1]),
                                       self.iters_after_fusion, self.n_pixels, generator)
@@ -331,8 +420,11 @@ class Odometry:
             "stamps": torch.tensor(self._stamps, dtype=torch.float64),
             "frame_indices": torch.tensor(self._indices, dtype=torch.int64),
             "poses": torch.from_numpy(poses.copy()),
+            "tracked": torch.tensor(self._tracked, dtype=torch.bool),
             "n_frames": self.n_frames,
             "fused": self.fused,
+            "last_keyframe_count": -1 if self._last_kf_count is None else self._last_kf_count,
+            "last_mapping_count": -1 if self._last_map_count is None else self._last_map_count,
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -350,9 +442,27 @@ class Odometry:
         self._stamps = [float(s) for s in state["stamps"].tolist()]
         self._indices = [int(i) for i in state["frame_indices"].tolist()]
         self._poses = [p.numpy().astype(np.float64) for p in state["poses"]]
+        tracked = state.get("tracked")  # absent in states written before the recovery
+        self._tracked = [True] * len(self._poses) if tracked is None else \
+            [bool(b) for b in tracked.tolist()]
+        if len(self._tracked) != len(self._poses):
+            raise ValueError("odometry state: tracked and poses differ in length")
         if not len(self._stamps) == len(self._indices) == len(self._poses) \
                 == int(state["n_frames"]):
             raise ValueError("odometry state: stamps, frame_indices and poses differ in length")
         self.seed = int(state["seed"])
         self.agent_id = int(state["agent_id"])
         self.fused = bool(state["fused"])
+        n = len(self._poses)
+        # States written before the counters existed made both on multiples of the period.
+        last_kf = int(state.get("last_keyframe_count", (n - 1) // self.kf_every * self.kf_every))
+        last_map = int(state.get("last_mapping_count",
+                                 (n - 1) // self.map_every * self.map_every))
+        self._last_kf_count = None if last_kf < 0 or n == 0 else last_kf
+        self._last_map_count = None if last_map < 0 or n == 0 else last_map
+        self._reference = None
+        latest = self.keyframes.latest
+        if latest is not None and len(latest.rgb_png):  # the comparison resumes at once
+            rgb, depth = self.keyframes.full_rgbd(latest.kf_id)
+            self._set_reference(latest.kf_id, torch.from_numpy(rgb).to(self.device),
+                                torch.from_numpy(depth).to(self.device))

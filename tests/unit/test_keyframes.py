@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from cpslam.agent.keyframes import KeyframeStore
+from cpslam.agent.keyframes import DEPTH_SCALE, KeyframeStore
 from cpslam.common.camera import Intrinsics
 from cpslam.common.geometry import se3_exp
 
@@ -59,6 +59,19 @@ def test_covisible_prefers_overlapping_keyframes() -> None:
     assert store.covisible(np.eye(4), INTR, k=5)[:2] == [3, 0]
 
 
+def test_full_size_images_are_kept_losslessly() -> None:
+    store = KeyframeStore(INTR, downscale=2)
+    rgb, depth = _frame(2.3456)
+    depth[5, 7], depth[6, 8] = 0.0, 20.0  # invalid, and beyond the stored range: invalid
+    store.add(0, 0.0, np.eye(4), rgb, depth)
+    rgb_full, depth_full = store.full_rgbd(0)
+    np.testing.assert_array_equal(rgb_full, rgb)
+    assert depth_full.shape == INTR.shape and depth_full[5, 7] == 0 and depth_full[6, 8] == 0
+    ok = depth > 0
+    ok[6, 8] = False
+    np.testing.assert_allclose(depth_full[ok], depth[ok], atol=0.5 / DEPTH_SCALE)
+
+
 def test_state_dict_round_trip_with_weights_only() -> None:
     store = KeyframeStore(INTR, downscale=2)
     rgb, depth = _frame()
@@ -75,5 +88,7 @@ def test_state_dict_round_trip_with_weights_only() -> None:
     np.testing.assert_array_equal(a.T_world_cam, b.T_world_cam)
     np.testing.assert_array_equal(a.rgb_small, b.rgb_small)
     np.testing.assert_array_equal(b.point_ids, [3, 5, 8])
+    for x, y in zip(store.full_rgbd(0), other.full_rgbd(0), strict=True):
+        np.testing.assert_array_equal(x, y)
     with pytest.raises(ValueError, match="made at"):
         KeyframeStore(INTR.scaled(0.5)).load_state_dict(state)

@@ -245,10 +245,12 @@ def test_image_request_answered_from_the_keyframe_store(warm) -> None:
     link, _ = warm
     reply = link.answer_image(KeyframeImageRequest(agent_id="a0", kf_id=1))
     assert isinstance(reply, KeyframeImage)
-    small = link.odometry.keyframes.intrinsics_small
-    assert (reply.width, reply.height) == (small.width, small.height)
-    np.testing.assert_allclose(reply.depth_metres(), link.odometry.keyframes.get(1).depth_small,
-                               atol=1e-3)
+    store = link.odometry.keyframes
+    full = store.intrinsics  # the processed frame's size: registration at full resolution
+    assert (reply.width, reply.height, reply.fx) == (full.width, full.height, full.fx)
+    rgb, depth = store.full_rgbd(1)
+    np.testing.assert_allclose(reply.depth_metres(), depth, atol=1e-3)
+    assert rgb.shape == (full.height, full.width, 3)
     protocol.decode(protocol.encode(reply), expected=KeyframeImage)
     missing = link.answer_image(KeyframeImageRequest(agent_id="a0", kf_id=99))
     assert isinstance(missing, ErrorReply) and missing.code == "not_found"
