@@ -1,7 +1,18 @@
-"""Collaboration quality bars (issue 5 section 6): prints a table and writes JSON.
+"""Collaboration quality: merges, loop edges and the pose graph, as a table and JSON.
 
     python bench/collab.py                      # apartment, 2 agents x 300 frames, cpu preset
     python bench/collab.py --frames 150 --skip-loop --preset tiny   # a quick look
+    python bench/collab.py --real --skip-collab --skip-loop        # the 7-Scenes frames only
+    python bench/collab.py --scene-seeds 0 1 2                      # several apartments
+
+Every run also reports its loop edges against the ground truth (read after the run): for
+each accepted loop of the final pose graph its translation and rotation error, its sigma
+(from the edge's information), chi2 of the ground-truth residual whitened by that
+information, whether the pose graph kept it (its chi2 after optimisation within the 95 %
+bound), and for a loop within one agent the error of the odometry over the same span.
+
+`--real`: ../shared/data/7scenes-kitchen-0-299 as two agents (frames 0-149 and 150-299: the
+second starts where the first ends, in a frame of its own) and as one agent with loops.
 
 Two-agent part: `cpslam dataset synth --scene apartment --agents 2 --frames N` (320x240,
 cached under runs/bench-data/), `cpslam run` with the preset; reports whether and when the
@@ -45,6 +56,70 @@ def _run(paths: list[Path], preset: str, sets: list[str], out: Path, seed: int):
     cfg = load_config(preset, overrides=[*sets, f"run.seed={seed}"], env={})
     seqs = [open_for_config(cfg, p) for p in paths]
     return run_collab(cfg, seqs, out, "cpu", show_progress=False), seqs
+
+
+def loop_edges(result, seqs) -> dict:
+    """Each loop edge of the final pose graph against the ground truth (see the docstring)."""
+    from cpslam.common.eval import reference_jumps
+    from cpslam.common.geometry import invert, se3_log
+    from cpslam.server.pose_graph import CHI2_6DOF_95
+
+    graph = result.final.pose_graph
+    if graph is None:
+        return {"edges": []}
+    gt = {}
+    for aid, seq in zip(result.agent_ids, seqs, strict=True):
+        poses = seq.gt_poses()
+        piece = np.searchsorted(reference_jumps(poses), np.arange(len(poses)), side="left")
+        gt[aid] = {int(i): (T, int(k)) for i, T, k in zip(seq.indices, poses, piece,
+                                                          strict=True)}
+    kf_frames = {aid: dict(zip(t.kf_ids.tolist(), t.kf_frame_indices.tolist(), strict=True))
+                 for aid, t in graph._trajectories.items()}  # noqa: SLF001 - bench only
+    records = {lp["loop_id"]: lp for lp in result.final.metrics["loops"].get("list", [])}
+    names = graph._names  # noqa: SLF001
+    rows = []
+    for e in graph._edges:  # noqa: SLF001
+        if e.loop_id is None:
+            continue
+        (a, _, ka), (b, _, kb) = names[e.key_a], names[e.key_b]
+        (Ta, pa), (Tb, pb) = gt[a][kf_frames[a][ka]], gt[b][kf_frames[b][kb]]
+        if a == b and pa != pb:
+            continue  # the ground truth jumps between the two: no truth to compare with
+        err = se3_log(invert(invert(Ta) @ Tb) @ e.T_a_b)
+        cov = np.linalg.inv(e.information)
+        row = {"loop": str(e.loop_id), "agents": [a, b], "keyframes": [int(ka), int(kb)],
+               "trans_cm": round(100 * float(np.linalg.norm(err[:3])), 3),
+               "rot_deg": round(float(np.degrees(np.linalg.norm(err[3:]))), 3),
+               "sigma_t_cm": round(100 * float(np.sqrt(np.trace(cov[:3, :3]) / 3)), 3),
+               "chi2_gt": round(float(err @ e.information @ err), 3),
+               "kept": not records.get(e.loop_id, {}).get("outlier", False)}
+        odo = result.odometry.get(a)
+        if a == b and odo is not None:
+            stamps = dict(zip(np.round(odo[0], 6).tolist(), range(len(odo[0]))))
+            ia, ib = (stamps.get(round(float(_stamp(seqs, result, a, f)), 6))
+                      for f in (kf_frames[a][ka], kf_frames[a][kb]))
+            if ia is not None and ib is not None:
+                odo_err = se3_log(invert(invert(Ta) @ Tb) @ (invert(odo[1][ia]) @ odo[1][ib]))
+                row["odometry_trans_cm"] = round(100 * float(np.linalg.norm(odo_err[:3])), 3)
+        rows.append(row)
+    out = {"edges": rows, "chi2_95": CHI2_6DOF_95}
+    if rows:
+        t = np.array([r["trans_cm"] for r in rows])
+        out.update(trans_cm_median=round(float(np.median(t)), 3),
+                   trans_cm_p90=round(float(np.percentile(t, 90)), 3),
+                   trans_cm_max=round(float(t.max()), 3),
+                   rot_deg_median=round(float(np.median([r["rot_deg"] for r in rows])), 3),
+                   chi2_gt_median=round(float(np.median([r["chi2_gt"] for r in rows])), 3),
+                   kept=sum(r["kept"] for r in rows))
+        odo = [r["odometry_trans_cm"] for r in rows if "odometry_trans_cm" in r]
+        if odo:
+            out["odometry_same_span_trans_cm_median"] = round(float(np.median(odo)), 3)
+    return out
+
+
+def _stamp(seqs, result, agent: str, frame_index: int) -> float:
+    seq = seqs[result.agent_ids.index(agent)]
+    return float(seq.timestamps[int(np.searchsorted(seq.indices, frame_index))])
 
 
 def _false_loops(result, seqs, fraction: float, seed: int) -> dict:

@@ -1,30 +1,31 @@
-"""Single-agent odometry quality and speed, printed as a table and as JSON.
+"""Single-agent odometry across scenes, thread counts and CPU code paths: accuracy, failures
+and speed, printed as tables and written as JSON.
 
-- synthetic: `cpslam dataset synth --scene room --loop --frames 300` at 320x240 (generated once
-  and cached under runs/bench-data/), ATE with origin and se3 alignment;
-- real: ../shared/data/7scenes-kitchen-0-299 processed at camera.downscale (320x240 for the
-  cpu preset), ATE with se3 alignment, next to Open3D's frame-to-frame RGB-D odometry
-  (`compute_rgbd_odometry`, hybrid term, chained) at the same resolution and at 640x480.
-  Its ground truth jumps 36 mm / 1.4 deg between frames 121 and 122 (a step the camera did
-  not make: both estimators measure 4-8 mm there), so the real sequence also gets the ATE over
-  the pieces between such jumps, each aligned on its own (`cpslam.common.eval.segments`), for
-  both methods, with its own ratio.
+Runs the agent's front end (`Odometry`: tracking, mapping, keyframes; no loop closure) on
 
-Timings are wall-clock on this machine with `run.num_threads` torch threads (`auto` in the
-cpu preset: every usable core for one run, the cores divided among the runs with `--jobs`);
-on CUDA they are synchronised per frame. Mapping is reported per call (what the paper calls
-a mapping step: one round of optimisation iterations) and per optimisation iteration. The
-paper's figures on an RTX 3090 (tracking 0.30 s per frame, mapping 10.1 s per step) are
-printed next to ours; compare them with the `paper` preset on a GPU (`--device cuda`).
+- synthetic scenes: `--scenes N` scenes with seeds `--scene-base`, `--scene-base` + 1, ...:
+  room loops and apartment walks in turn, every other pair with Kinect-like depth noise
+  (300 frames at 320x240, generated once under runs/bench-data/); origin- and se3-aligned
+  ATE, next to Open3D's frame-to-frame RGB-D odometry on the same frames;
+- real frames: ../shared/data/7scenes-kitchen-0-299 (when present) at the preset's
+  camera.downscale; se3 ATE and the ATE over the pieces between the ground truth's one-frame
+  jumps (it jumps 36 mm between frames 121 and 122, a step the camera did not make), next to
+  Open3D at that resolution and at 640x480, with the ratio to the better Open3D.
 
-Both sequences also get the relative pose error over 1 and 10 frames (RPE: jitter and local
-drift, independent of the alignment). One seed is one sample: `--seeds 0 1 2` runs every
-sequence once per seed (`run.seed`: pixel draws and ray jitter) and adds the mean and the
-worst, and `--jobs 2` runs two of those at once (each on half the cores; timings then
-include the other job's load).
+Every sequence runs once per `--threads` count (torch threads), `--capability` (`default`, or
+`avx2`: ATEN_CPU_CAPABILITY=avx2 forces torch's AVX2 kernels on an AVX-512 machine) and
+`--seeds` value (run.seed: pixel draws and ray jitter), each run in its own process, as many
+at once as the cores allow (`--jobs`). A run "lost track" when a frame's position error,
+after the alignment, exceeds 10 cm; the recovery's events (frames found suspect, recovered,
+lost: `cpslam.agent.recovery`) are counted per run.
 
-Usage: python bench/odometry.py [--preset cpu] [--device auto|cpu|cuda[:i]] [--frames N]
-       [--only synth|real] [--seeds S ...] [--jobs N] [--set a.b=v ...] [--json PATH]
+Timings are wall-clock on this machine (runs side by side share it; on CUDA synchronised per
+frame). The paper's figures on an RTX 3090 (tracking 0.30 s per frame, mapping 10.1 s per
+mapping step) are printed beside ours for the `paper` preset on a GPU (`--device cuda`).
+
+Usage: python bench/odometry.py [--preset cpu] [--scenes 8] [--scene-base 0] [--threads 1 2]
+       [--capability default avx2] [--seeds 0] [--frames 300] [--only synth|real]
+       [--set a.b=v ...] [--jobs N] [--device cpu] [--json PATH]
 """
 
 from __future__ import annotations
@@ -32,285 +33,196 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
+import subprocess
 import sys
-import time
-from concurrent.futures import ProcessPoolExecutor
-from multiprocessing import get_context
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
-import torch
 
-from cpslam.agent.odometry import Odometry
-from cpslam.common.camera import Intrinsics, resize_rgbd
-from cpslam.common.config import load_config
-from cpslam.common.datasets import open_sequence
-from cpslam.common.device import configure_torch, resolve_device
-from cpslam.common.eval import evaluate_ate, evaluate_rpe, reference_jumps, segmented_ate
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from benchinfo import bench_header  # noqa: E402
+from odometry_runs import (  # noqa: E402
+    KITCHEN,
+    PAPER,
+    ensure_scene,
+    open3d_odometry,
+    run_job,
+    scene_specs,
+)
 
-REPO = Path(__file__).resolve().parents[1]
-SYNTH_DIR = REPO / "runs" / "bench-data" / "room-loop-300-320x240"
-# The CP-SLAM paper's timings on an RTX 3090: tracking per frame, mapping per mapping step.
-PAPER = {"tracking_s_per_frame": 0.30, "mapping_s_per_call": 10.1}
-KITCHEN = REPO.parent / "shared" / "data" / "7scenes-kitchen-0-299"
+LOST_CM = 10.0
+"""A frame further than this from the ground truth (after alignment) means lost track."""
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--preset", default="cpu")
     parser.add_argument("--frames", type=int, default=300, help="frames of each sequence")
+    parser.add_argument("--scenes", type=int, default=8, help="synthetic scenes")
+    parser.add_argument("--scene-base", type=int, default=0, help="seed of the first scene")
+    parser.add_argument("--threads", type=int, nargs="+", default=[1, 2])
+    parser.add_argument("--capability", nargs="+", default=["default"],
+                        choices=("default", "avx2"))
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0], help="run.seed values")
     parser.add_argument("--only", choices=("synth", "real"), default=None)
     parser.add_argument("--set", nargs="*", default=[], help="config overrides a.b=value")
-    parser.add_argument("--seeds", type=int, nargs="*", default=None,
-                        help="run.seed values, one run each (default: the config's)")
-    parser.add_argument("--jobs", type=int, default=1, help="runs at once (processes)")
+    parser.add_argument("--jobs", type=int, default=0,
+                        help="runs at once (0: the cores divided by the runs' threads)")
+    parser.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
     parser.add_argument("--json", type=Path, default=None, help="also write the JSON here")
-    parser.add_argument("--device", default="cpu", help="auto, cpu, cuda or cuda:N")
+    parser.add_argument("--job", default=None, help=argparse.SUPPRESS)  # one run (internal)
     args = parser.parse_args()
-    cfg = load_config(args.preset, overrides=args.set, env={})
-    device = resolve_device(args.device)
-    seeds = args.seeds or [cfg.run.seed]
-    report: dict = {
-        "machine": {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),
-                    "torch": torch.__version__,
-                    "load_average_1min_at_start": round(os.getloadavg()[0], 2)},
-        "preset": args.preset, "overrides": args.set, "frames": args.frames, "device": device,
-        "seeds": seeds, "jobs": args.jobs,
-        "gpu": torch.cuda.get_device_name(device) if device.startswith("cuda") else None,
-        "paper_rtx3090": PAPER,
-    }
-    kinds = [k for k in ("synth", "real") if args.only in (None, k)]
-    if "real" in kinds and not KITCHEN.is_dir():
-        report["real"] = {"skipped": f"no data at {KITCHEN}"}
-        kinds.remove("real")
-    if "synth" in kinds:
-        _ensure_synthetic()
-    share = max(1, min(args.jobs, len(kinds) * len(seeds)))  # runs side by side share the cores
-    report["machine"]["torch_threads"] = configure_torch(cfg.run.num_threads,
-                                                         cfg.run.deterministic, share)
-    jobs = [(args.preset, args.set, kind, seed, args.frames, device, share)
-            for kind in kinds for seed in seeds]
-    if args.jobs > 1 and len(jobs) > 1:
-        with ProcessPoolExecutor(args.jobs, mp_context=get_context("spawn")) as pool:
-            results = list(pool.map(_run_job, jobs))
-    else:
-        results = [_run_job(job) for job in jobs]
-    for kind in kinds:
-        runs = [r for job, r in zip(jobs, results, strict=True) if job[2] == kind]
-        name = "synthetic" if kind == "synth" else "real"
-        report[name] = _summarise(runs, seeds)
-        if kind == "real":
-            _compare_open3d(report[name], cfg, args.frames)
-    print_table(report)
+    if args.job is not None:
+        print(json.dumps(run_job(json.loads(args.job))))
+        return
+    report = bench_header("odometry", sys.argv)
+    report.update(preset=args.preset, overrides=args.set, frames=args.frames,
+                  device=args.device, paper_rtx3090=PAPER)
+    sequences: list[dict] = []
+    if args.only in (None, "synth"):
+        for spec in scene_specs(args.scenes, args.scene_base):
+            spec["path"] = str(ensure_scene(spec, args.frames))
+            sequences.append(spec)
+    if args.only in (None, "real"):
+        if KITCHEN.is_dir():
+            sequences.append({"name": "7scenes-kitchen", "kind": "real", "path": str(KITCHEN)})
+        else:
+            report["real_skipped"] = f"no data at {KITCHEN}"
+    jobs = [{"sequence": seq, "preset": args.preset, "overrides": args.set,
+             "frames": args.frames, "device": args.device, "threads": threads,
+             "capability": cap, "seed": seed}
+            for threads in args.threads for cap in args.capability for seed in args.seeds
+            for seq in sequences]
+    report["runs"] = _run_all(jobs, args.jobs)
+    report["open3d"] = {seq["name"]: open3d_odometry(seq, args.frames) for seq in sequences}
+    report["summary"] = summarise(report["runs"], report["open3d"])
+    print_tables(report)
     text = json.dumps(report, indent=2)
-    print(text)
     if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(text + "\n")
+        print(f"wrote {args.json}")
+    else:
+        print(text)
 
 
-def _ensure_synthetic() -> None:
-    if not (SYNTH_DIR / "agent_0" / "traj.txt").is_file():
-        from cpslam.common.synth import generate
-
-        generate(SYNTH_DIR, scene="room", frames=300, width=320, height=240, loop=True,
-                 overwrite=True)
-
-
-def _run_job(job: tuple) -> dict:
-    """One odometry run (in a worker process when --jobs > 1)."""
-    preset, overrides, kind, seed, frames, device, share = job
-    cfg = load_config(preset, overrides=[*overrides, f"run.seed={seed}"], env={})
-    configure_torch(cfg.run.num_threads, cfg.run.deterministic, share)
-    if kind == "synth":
-        seq = open_sequence(SYNTH_DIR / "agent_0", frames=slice(0, frames))
-        # The synthetic data is already 320x240: process it at its own size.
-        return run_odometry(cfg, seq, factor=1.0, aligns=("origin", "se3"), device=device)
-    seq = open_sequence(KITCHEN, frames=slice(0, frames))
-    return run_odometry(cfg, seq, factor=cfg.camera.downscale, aligns=("se3",), device=device,
-                        pieces=True)
+def _run_all(jobs: list[dict], jobs_at_once: int) -> list[dict]:
+    """Every job in its own process, grouped by thread count so that the cores are shared."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    results: list[dict] = []
+    for threads in sorted({j["threads"] for j in jobs}):
+        group = [j for j in jobs if j["threads"] == threads]
+        width = jobs_at_once or max(1, (cores or 1) // threads)
+        with ThreadPoolExecutor(width) as pool:
+            results += list(pool.map(_subprocess, group))
+    return results
 
 
-def _summarise(runs: list[dict], seeds: list[int]) -> dict:
-    """The first seed's run at the top level (as with one seed), every seed's accuracy under
-    "per_seed", and their mean and worst."""
-    out = dict(runs[0])
-    keys = [k for k in runs[0] if k.startswith(("ate_", "rpe"))]
-    out["per_seed"] = [{"seed": seed, **{k: r[k] for k in keys}, "mean_s_per_frame":
-                        r["mean_s_per_frame"]} for seed, r in zip(seeds, runs, strict=True)]
-    if len(runs) > 1:
-        out["mean_over_seeds"] = {k: round(float(np.mean([r[k] for r in runs])), 3)
-                                  for k in [*keys, "mean_s_per_frame"]}
-        out["worst_over_seeds"] = {k: max(r[k] for r in runs) for k in keys}
-    return out
+def _subprocess(job: dict) -> dict:
+    env = dict(os.environ)
+    if job["capability"] != "default":
+        env["ATEN_CPU_CAPABILITY"] = job["capability"]
+    name = job["sequence"]["name"]
+    print(f"  {name}: {job['threads']} thread(s), {job['capability']}, seed {job['seed']}",
+          file=sys.stderr, flush=True)
+    done = subprocess.run([sys.executable, __file__, "--job", json.dumps(job)], env=env,
+                          capture_output=True, text=True)
+    key = {k: job[k] for k in ("threads", "capability", "seed")}
+    if done.returncode != 0:
+        return {"sequence": name, **key, "error": done.stderr.strip()[-2000:]}
+    return {"sequence": name, "kind": job["sequence"]["kind"], **key,
+            **json.loads(done.stdout.strip().splitlines()[-1])}
 
 
-def _compare_open3d(out: dict, cfg, frames: int) -> None:
-    seq = open_sequence(KITCHEN, frames=slice(0, frames))
-    out["open3d"] = {}
-    for factor in sorted({cfg.camera.downscale, 1.0}):
-        size = "x".join(map(str, _size(seq.intrinsics, factor)))
-        out["open3d"][size] = open3d_odometry(seq, factor, cfg.camera.depth_max)
-    for key, suffix in (("ate_se3_cm", ""), ("ate_se3_pieces_cm", "_pieces")):
-        best = min(v[key] for v in out["open3d"].values())
-        out[f"ratio{suffix}_ours_over_best_open3d"] = round(out[key] / best, 3)
-        if "mean_over_seeds" in out:
-            out[f"ratio{suffix}_mean_over_best_open3d"] = round(
-                out["mean_over_seeds"][key] / best, 3)
-            out[f"ratio{suffix}_worst_over_best_open3d"] = round(
-                out["worst_over_seeds"][key] / best, 3)
-
-
-def run_odometry(cfg, seq, factor: float, aligns: tuple[str, ...], device: str = "cpu",
-                 pieces: bool = False) -> dict:
-    """One run; with `pieces`, also the se3 ATE over the pieces between ground-truth jumps."""
-    intrinsics = seq.intrinsics.scaled(factor) if factor != 1.0 else seq.intrinsics
-    odometry = Odometry.from_config(cfg, intrinsics, device)
-    track, mapping, map_calls, step_times = [], [], [], []
-    start = time.perf_counter()
-    for i in range(len(seq)):
-        frame = seq[i]
-        if factor != 1.0:
-            frame.rgb, frame.depth = resize_rgbd(frame.rgb, frame.depth, factor)
-        result = odometry.step(frame)
-        if device.startswith("cuda"):
-            torch.cuda.synchronize(device)
-        track.append(result.track_time_s)
-        mapping.append(result.map_time_s)
-        if result.map_steps and i > 0:
-            map_calls.append(result.map_time_s)
-            step_times.append(result.map_optimise_time_s / result.map_steps)
-        if i % 50 == 0:
-            print(f"  frame {i}/{len(seq)}: {time.perf_counter() - start:.0f} s, "
-                  f"{result.n_points} points", file=sys.stderr, flush=True)
-    total = time.perf_counter() - start
-    stamps, poses = odometry.trajectory()
-    out = {"frames": len(seq), "resolution": f"{intrinsics.width}x{intrinsics.height}"}
-    gt = seq.gt_poses()  # reads every pose file: once per run
-    for align in aligns:
-        ate = evaluate_ate(seq.timestamps, gt, stamps, poses, align=align)
-        out[f"ate_{align}_cm"] = round(100 * ate.rmse, 3)
-    if pieces:
-        out.update(_pieces(seq.timestamps, gt, stamps, poses))
-    out.update(_rpe(seq.timestamps, gt, stamps, poses))
-    out.update({
-        "mean_s_per_frame": round(total / len(seq), 3),
-        "tracking_s_per_frame": round(float(np.mean(track[1:])), 3),
-        "mapping_s_per_call": round(float(np.mean(map_calls)), 3) if map_calls else None,
-        "mapping_s_per_iter": round(float(np.mean(step_times)), 4) if step_times else None,
-        "first_mapping_s": round(mapping[0], 2),
-        "points": len(odometry.point_map),
-        "keyframes": len(odometry.keyframes),
-        "peak_gpu_memory_mb": round(torch.cuda.max_memory_allocated(device) / 2**20, 1)
-        if device.startswith("cuda") else None,
-    })
-    return out
-
-
-def open3d_odometry(seq, factor: float, depth_max: float) -> dict:
-    """Open3D RGB-D odometry (hybrid term), frame to frame, chained from identity."""
-    import open3d as o3d
-
-    intr = seq.intrinsics.scaled(factor) if factor != 1.0 else seq.intrinsics
-    pinhole = o3d.camera.PinholeCameraIntrinsic(intr.width, intr.height, intr.fx, intr.fy,
-                                                intr.cx, intr.cy)
-    option = o3d.pipelines.odometry.OdometryOption()
-    option.depth_max = depth_max
-    jacobian = o3d.pipelines.odometry.RGBDOdometryJacobianFromHybridTerm()
-    poses = [np.eye(4)]
-    previous = None
-    failures = 0
-    start = time.perf_counter()
-    for i in range(len(seq)):
-        frame = seq[i]
-        rgb, depth = frame.rgb, frame.depth
-        if factor != 1.0:
-            rgb, depth = resize_rgbd(rgb, depth, factor)
-        image = o3d.geometry.RGBDImage.create_from_color_and_depth(
-            o3d.geometry.Image(np.ascontiguousarray(rgb)),
-            o3d.geometry.Image(np.ascontiguousarray(depth)),
-            depth_scale=1.0, depth_trunc=depth_max, convert_rgb_to_intensity=True)
-        if previous is not None:
-            ok, T_prev_cur, _ = o3d.pipelines.odometry.compute_rgbd_odometry(
-                image, previous, pinhole, np.eye(4), jacobian, option)
-            if not ok:
-                failures += 1
-                T_prev_cur = np.eye(4)
-            poses.append(poses[-1] @ T_prev_cur)
-        previous = image
-    seconds = time.perf_counter() - start
-    gt, chained = seq.gt_poses(), np.stack(poses)
-    ate = evaluate_ate(seq.timestamps, gt, seq.timestamps, chained, align="se3")
-    return {"ate_se3_cm": round(100 * ate.rmse, 3),
-            **_pieces(seq.timestamps, gt, seq.timestamps, chained),
-            **_rpe(seq.timestamps, gt, seq.timestamps, chained), "failures": failures,
-            "mean_s_per_frame": round(seconds / len(seq), 3)}
-
-
-def _pieces(gt_stamps: np.ndarray, gt_poses: np.ndarray, stamps: np.ndarray,
-            poses: np.ndarray) -> dict:
-    """se3 ATE over the pieces between the ground truth's jumps, and where it jumps."""
-    jumps = reference_jumps(gt_poses)
-    result = segmented_ate(gt_stamps, gt_poses, stamps, poses, jumps, align="se3")
-    return {"ate_se3_pieces_cm": round(100 * result.rmse, 3),
-            "gt_jumps_after_frame": [int(j) for j in jumps]}
-
-
-def _rpe(gt_stamps: np.ndarray, gt_poses: np.ndarray, stamps: np.ndarray,
-         poses: np.ndarray) -> dict:
-    """Mean relative pose error over 1 and 10 frames, in mm and degrees (a span as long as
-    the run or longer is left out)."""
-    out = {}
-    for delta in (d for d in (1, 10) if d < len(poses)):
-        rpe = evaluate_rpe(gt_stamps, gt_poses, stamps, poses, delta=delta)
-        out[f"rpe{delta}_mm"] = round(1000 * rpe.trans_mean, 2)
-        out[f"rpe{delta}_deg"] = round(rpe.rot_mean_deg, 3)
-    return out
-
-
-def _size(intr: Intrinsics, factor: float) -> tuple[int, int]:
-    scaled = intr.scaled(factor) if factor != 1.0 else intr
-    return scaled.width, scaled.height
-
-
-def print_table(report: dict) -> None:
-    rows = [("sequence", "ATE origin cm", "ATE se3 cm", "se3 pieces cm", "RPE1 mm/deg",
-             "RPE10 mm/deg", "s/frame", "track s/frame", "map s/call", "map s/iter", "points")]
-
-    def accuracy(r: dict) -> tuple[str, ...]:
-        return (str(r.get("ate_origin_cm", "-")), str(r["ate_se3_cm"]),
-                str(r.get("ate_se3_pieces_cm", "-")),
-                *(f"{r[f'rpe{d}_mm']}/{r[f'rpe{d}_deg']}" if f"rpe{d}_mm" in r else "-"
-                  for d in (1, 10)))
-
-    for name in ("synthetic", "real"):
-        r = report.get(name)
-        if not r or "skipped" in r:
+def summarise(runs: list[dict], open3d: dict) -> dict:
+    """Per sequence and over all synthetic runs: mean and worst ATE, runs over the bars,
+    lost runs and recovery events; for the real frames the ratio to the better Open3D."""
+    out: dict = {"per_sequence": {}}
+    for name in dict.fromkeys(r["sequence"] for r in runs):
+        ok = [r for r in runs if r["sequence"] == name and "error" not in r]
+        key = "ate_origin_cm" if ok and ok[0]["kind"] != "real" else "ate_se3_cm"
+        if not ok:
+            out["per_sequence"][name] = {"errors": len([r for r in runs
+                                                        if r["sequence"] == name])}
             continue
-        rows.append((f"{name} ({r['resolution']}, cpslam, seed {report['seeds'][0]})",
-                     *accuracy(r), str(r["mean_s_per_frame"]), str(r["tracking_s_per_frame"]),
-                     str(r["mapping_s_per_call"]), str(r.get("mapping_s_per_iter")),
-                     str(r["points"])))
-        for run in r["per_seed"][1:]:
-            rows.append((f"{name} cpslam, seed {run['seed']}", *accuracy(run),
-                         str(run["mean_s_per_frame"]), "", "", "", ""))
-        if "mean_over_seeds" in r:
-            m = r["mean_over_seeds"]
-            rows.append((f"{name} cpslam, mean of {len(r['per_seed'])} seeds", *accuracy(m),
-                         str(m["mean_s_per_frame"]), "", "", "", ""))
-        for size, o in r.get("open3d", {}).items():
-            rows.append((f"{name} ({size}, Open3D hybrid)", "-", *accuracy(o)[1:],
-                         str(o["mean_s_per_frame"]), "-", "-", "-", "-"))
-        for which, label in (("ours", "first seed"), ("mean", "mean"),
-                             ("worst", "worst seed")):
-            if f"ratio_{which}_over_best_open3d" in r:
-                rows.append((f"{name}: ATE ratio cpslam ({label}) / best Open3D", "",
-                             str(r[f"ratio_{which}_over_best_open3d"]),
-                             str(r.get(f"ratio_pieces_{which}_over_best_open3d", "-")),
-                             "", "", "", "", "", "", ""))
-    paper = report["paper_rtx3090"]
-    rows.append(("CP-SLAM paper (RTX 3090, paper preset)", "-", "-", "-", "-", "-", "-",
-                 str(paper["tracking_s_per_frame"]), str(paper["mapping_s_per_call"]), "-", "-"))
+        values = [r[key] for r in ok]
+        entry = {"metric": key, "runs": len(ok), "mean": round(float(np.mean(values)), 3),
+                 "worst": round(float(np.max(values)), 3),
+                 "lost_runs": sum(r["max_error_cm"] > LOST_CM for r in ok),
+                 "events": _sum_events(ok),
+                 "s_per_frame": round(float(np.mean([r["s_per_frame"] for r in ok])), 3)}
+        o3d = open3d.get(name, {})
+        if ok[0]["kind"] == "real" and o3d:
+            best = min(o3d.values(), key=lambda v: v["ate_se3_cm"])
+            entry["ratio_mean_over_best_open3d"] = round(entry["mean"] / best["ate_se3_cm"], 3)
+            entry["ratio_worst_over_best_open3d"] = round(entry["worst"] / best["ate_se3_cm"], 3)
+            pieces = [r["ate_se3_pieces_cm"] for r in ok]
+            best_pieces = min(v["ate_se3_pieces_cm"] for v in o3d.values())
+            entry["pieces_mean"] = round(float(np.mean(pieces)), 3)
+            entry["ratio_pieces_mean_over_best_open3d"] = round(
+                entry["pieces_mean"] / best_pieces, 3)
+        out["per_sequence"][name] = entry
+    synth = [r for r in runs if r.get("kind") not in (None, "real") and "error" not in r]
+    if synth:
+        values = [r["ate_origin_cm"] for r in synth]
+        out["synthetic"] = {"runs": len(synth), "mean_origin_cm": round(float(np.mean(values)), 3),
+                            "worst_origin_cm": round(float(np.max(values)), 3),
+                            "runs_over_1cm": sum(v > 1.0 for v in values),
+                            "lost_runs": sum(r["max_error_cm"] > LOST_CM for r in synth),
+                            "events": _sum_events(synth)}
+    out["failed_runs"] = sum("error" in r for r in runs)
+    return out
+
+
+def _sum_events(runs: list[dict]) -> dict:
+    keys = ("suspect", "recovered", "lost")
+    return {k: int(sum(r.get("events", {}).get(k, 0) for r in runs)) for k in keys}
+
+
+def print_tables(report: dict) -> None:
+    """Per run, per sequence and overall."""
+    rows = [("sequence", "threads", "cpu", "seed", "ATE origin cm", "ATE se3 cm",
+             "pieces cm", "max err cm", "RPE1 mm/deg", "events s/r/l", "s/frame",
+             "track s", "map s/call")]
+    for r in report["runs"]:
+        if "error" in r:
+            rows.append((r["sequence"], str(r["threads"]), r["capability"], str(r["seed"]),
+                         "error", "", "", "", "", "", "", "", ""))
+            continue
+        ev = r.get("events", {})
+        rows.append((r["sequence"], str(r["threads"]), r["capability"], str(r["seed"]),
+                     str(r.get("ate_origin_cm", "-")), str(r["ate_se3_cm"]),
+                     str(r.get("ate_se3_pieces_cm", "-")), str(r["max_error_cm"]),
+                     f"{r.get('rpe1_mm', '-')}/{r.get('rpe1_deg', '-')}",
+                     f"{ev.get('suspect', 0)}/{ev.get('recovered', 0)}/{ev.get('lost', 0)}",
+                     str(r["s_per_frame"]), str(r["tracking_s_per_frame"]),
+                     str(r["mapping_s_per_call"])))
+    _print_rows(rows)
+    print()
+    rows = [("sequence", "metric", "runs", "mean", "worst", "lost runs", "Open3D",
+             "ratio mean/worst", "pieces ratio")]
+    for name, e in report["summary"]["per_sequence"].items():
+        if "mean" not in e:
+            rows.append((name, "error", "", "", "", "", "", "", ""))
+            continue
+        o3d = report["open3d"].get(name, {})
+        o3d_text = " / ".join(f"{size} {v.get('ate_origin_cm', v['ate_se3_cm'])}"
+                              for size, v in o3d.items())
+        ratio = (f"{e['ratio_mean_over_best_open3d']}/{e['ratio_worst_over_best_open3d']}"
+                 if "ratio_mean_over_best_open3d" in e else "-")
+        rows.append((name, e["metric"], str(e["runs"]), str(e["mean"]), str(e["worst"]),
+                     str(e["lost_runs"]), o3d_text or "-", ratio,
+                     str(e.get("ratio_pieces_mean_over_best_open3d", "-"))))
+    _print_rows(rows)
+    s = report["summary"].get("synthetic")
+    if s:
+        print(f"\nsynthetic: {s['runs']} runs, origin ATE mean {s['mean_origin_cm']} cm, worst "
+              f"{s['worst_origin_cm']} cm, {s['runs_over_1cm']} over 1 cm, {s['lost_runs']} "
+              f"lost track; events {s['events']}")
+
+
+def _print_rows(rows: list[tuple[str, ...]]) -> None:
     widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]
     for row in rows:
         print("  ".join(cell.ljust(w) for cell, w in zip(row, widths, strict=True)))

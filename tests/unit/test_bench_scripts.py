@@ -13,7 +13,18 @@ import pytest
 BENCH = Path(__file__).resolve().parents[2] / "bench"
 
 
-@pytest.mark.parametrize("script", sorted(p.name for p in BENCH.glob("*.py")))
+SCRIPTS = sorted(p.name for p in BENCH.glob("*.py") if 'if __name__ == "__main__"' in p.read_text())
+
+
+def _bench_module(name: str):
+    sys.path.insert(0, str(BENCH))
+    try:
+        return __import__(name)
+    finally:
+        sys.path.remove(str(BENCH))
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
 def test_bench_script_prints_its_usage(script: str) -> None:
     done = subprocess.run([sys.executable, str(BENCH / script), "--help"], capture_output=True,
                           text=True, timeout=120)
@@ -21,39 +32,57 @@ def test_bench_script_prints_its_usage(script: str) -> None:
     assert "usage:" in done.stdout
 
 
-def test_odometry_bench_summarises_seeds() -> None:
-    sys.path.insert(0, str(BENCH))
-    try:
-        import odometry as bench
-    finally:
-        sys.path.remove(str(BENCH))
-    runs = [{"ate_se3_cm": a, "rpe1_mm": r, "mean_s_per_frame": 1.0, "points": 10}
-            for a, r in ((2.0, 5.0), (4.0, 7.0))]
-    out = bench._summarise(runs, [0, 1])
-    assert out["ate_se3_cm"] == 2.0 and out["points"] == 10  # the first seed at the top
-    assert [s["seed"] for s in out["per_seed"]] == [0, 1]
-    assert out["mean_over_seeds"]["ate_se3_cm"] == 3.0
-    assert out["worst_over_seeds"] == {"ate_se3_cm": 4.0, "rpe1_mm": 7.0}
+def test_odometry_bench_summarises_runs(capsys: pytest.CaptureFixture[str]) -> None:
+    bench = _bench_module("odometry")
+    base = {"kind": "room", "threads": 1, "capability": "default", "seed": 0,
+            "ate_se3_cm": 0.5, "rpe1_mm": 1.0, "rpe1_deg": 0.1, "s_per_frame": 1.0,
+            "tracking_s_per_frame": 0.5, "mapping_s_per_call": 3.0}
+    runs = [{**base, "sequence": "room-0", "ate_origin_cm": 0.8, "max_error_cm": 2.0,
+             "events": {"suspect": 2, "recovered": 2, "lost": 0}},
+            {**base, "sequence": "room-0", "threads": 2, "ate_origin_cm": 1.2,
+             "max_error_cm": 12.0, "events": {"suspect": 1, "recovered": 0, "lost": 1}},
+            {**base, "sequence": "kitchen", "kind": "real", "ate_se3_cm": 2.0,
+             "ate_se3_pieces_cm": 1.5, "max_error_cm": 5.0},
+            {"sequence": "kitchen", "threads": 2, "capability": "avx2", "seed": 0,
+             "error": "boom"}]
+    open3d = {"kitchen": {"320x240": {"ate_se3_cm": 2.5, "ate_se3_pieces_cm": 2.0},
+                          "640x480": {"ate_se3_cm": 4.0, "ate_se3_pieces_cm": 3.0}}}
+    summary = bench.summarise(runs, open3d)
+    room = summary["per_sequence"]["room-0"]
+    assert room["mean"] == 1.0 and room["worst"] == 1.2 and room["lost_runs"] == 1
+    assert room["events"] == {"suspect": 3, "recovered": 2, "lost": 1}
+    kitchen = summary["per_sequence"]["kitchen"]
+    assert kitchen["ratio_mean_over_best_open3d"] == 0.8  # against the better Open3D
+    assert kitchen["ratio_pieces_mean_over_best_open3d"] == 0.75
+    assert summary["synthetic"]["runs_over_1cm"] == 1 and summary["failed_runs"] == 1
+    bench.print_tables({"runs": runs, "summary": summary, "open3d": open3d})
+    out = capsys.readouterr().out
+    assert "error" in out and "1 lost track" in out
 
 
-def test_odometry_bench_rpe_leaves_out_spans_longer_than_the_run(
-        capsys: pytest.CaptureFixture[str]) -> None:
-    sys.path.insert(0, str(BENCH))
-    try:
-        import odometry as bench
-    finally:
-        sys.path.remove(str(BENCH))
+def test_odometry_bench_scenes_alternate_kind_and_noise() -> None:
+    specs = _bench_module("odometry_runs").scene_specs(4, 100)
+    assert [(s["kind"], s["noise"], s["seed"]) for s in specs] == [
+        ("room", False, 100), ("apartment", False, 101), ("room", True, 102),
+        ("apartment", True, 103)]
+    assert [s["name"] for s in specs][2] == "room-102-noise"
+
+
+def test_odometry_accuracy_leaves_out_spans_longer_than_the_run() -> None:
+    runs = _bench_module("odometry_runs")
     stamps = np.arange(8, dtype=np.float64)
     poses = np.repeat(np.eye(4)[None], 8, axis=0)
     poses[:, 0, 3] = 0.01 * stamps  # 1 cm per frame
     est = poses.copy()
     est[:, 0, 3] *= 1.1  # 1 mm per frame too far
-    out = bench._rpe(stamps, poses, stamps, est)
+
+    class Seq:
+        timestamps = stamps
+
+        @staticmethod
+        def gt_poses():
+            return poses
+
+    out = runs.accuracy(Seq(), stamps, est, real=False)
     assert out["rpe1_mm"] == pytest.approx(1.0) and "rpe10_mm" not in out
-    report = {"seeds": [0], "paper_rtx3090": bench.PAPER,
-              "synthetic": {"resolution": "8x8", "ate_se3_cm": 0.1, "mean_s_per_frame": 1.0,
-                            "tracking_s_per_frame": 0.5,
-                            "mapping_s_per_call": 1.0, "points": 3, "per_seed": [{}], **out}}
-    bench.print_table(report)  # prints "-" for the missing span instead of failing
-    row = next(line for line in capsys.readouterr().out.splitlines() if "cpslam" in line)
-    assert "1.0/" in row and " - " in row
+    assert out["max_error_cm"] == pytest.approx(0.7)  # frame 7: 7.7 cm instead of 7 cm

@@ -1,0 +1,189 @@
+"""One odometry run, Open3D's RGB-D odometry on the same frames, and the bench's scenes (the
+parts of bench/odometry.py that run inside a job's process)."""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+DATA = REPO / "runs" / "bench-data"
+KITCHEN = REPO.parent / "shared" / "data" / "7scenes-kitchen-0-299"
+# The CP-SLAM paper's timings on an RTX 3090: tracking per frame, mapping per mapping step.
+PAPER = {"tracking_s_per_frame": 0.30, "mapping_s_per_call": 10.1}
+SIZE = (320, 240)
+
+
+def scene_specs(n: int, base: int) -> list[dict]:
+    """n synthetic scenes: room loops and apartment walks in turn, every other pair noisy."""
+    specs = []
+    for i in range(n):
+        scene = "room" if i % 2 == 0 else "apartment"
+        noise = (i // 2) % 2 == 1
+        seed = base + i
+        specs.append({"name": f"{scene}-{seed}{'-noise' if noise else ''}", "kind": scene,
+                      "seed": seed, "noise": noise, "loop": scene == "room"})
+    return specs
+
+
+def ensure_scene(spec: dict, frames: int) -> Path:
+    """The scene's sequence folder, rendered on first use."""
+    out = DATA / f"{spec['name']}-{frames}-{SIZE[0]}x{SIZE[1]}"
+    if not (out / "agent_0" / "traj.txt").is_file():
+        from cpslam.common.synth import generate
+
+        print(f"  rendering {spec['name']} ({frames} frames) into {out}", file=sys.stderr,
+              flush=True)
+        generate(out, scene=spec["kind"], frames=frames, width=SIZE[0], height=SIZE[1],
+                 seed=spec["seed"], noise=spec["noise"], loop=spec["loop"], overwrite=True)
+    return out / "agent_0"
+
+
+def run_job(job: dict) -> dict:
+    """One odometry run of a sequence (inside its own process: the thread count and CPU
+    capability are the process's)."""
+    import torch
+
+    from cpslam.common.config import load_config
+    from cpslam.common.datasets import open_sequence
+    from cpslam.common.device import configure_torch, resolve_device
+
+    seq_info = job["sequence"]
+    cfg = load_config(job["preset"], overrides=[*job["overrides"], f"run.seed={job['seed']}",
+                                                f"run.num_threads={job['threads']}"], env={})
+    threads = configure_torch(cfg.run.num_threads, cfg.run.deterministic, 1)
+    device = resolve_device(job["device"])
+    seq = open_sequence(seq_info["path"], frames=slice(0, job["frames"]))
+    real = seq_info["kind"] == "real"
+    factor = cfg.camera.downscale if real else 1.0  # synthetic scenes are rendered at 320x240
+    out = run_odometry(cfg, seq, factor, device, real)
+    out.update(torch_threads=threads, cpu_capability=os.environ.get("ATEN_CPU_CAPABILITY",
+                                                                    "default"),
+               peak_gpu_memory_mb=round(torch.cuda.max_memory_allocated(device) / 2**20, 1)
+               if device.startswith("cuda") else None)
+    return out
+
+
+def run_odometry(cfg, seq, factor: float, device: str, real: bool) -> dict:
+    """Track and map every frame; accuracy against the ground truth, recovery events, time."""
+    import torch
+
+    from cpslam.agent.odometry import Odometry
+    from cpslam.common.camera import resize_rgbd
+
+    intrinsics = seq.intrinsics.scaled(factor) if factor != 1.0 else seq.intrinsics
+    odometry = Odometry.from_config(cfg, intrinsics, device)
+    track, map_calls, step_times, first_map = [], [], [], 0.0
+    start = time.perf_counter()
+    for i in range(len(seq)):
+        frame = seq[i]
+        if factor != 1.0:
+            frame.rgb, frame.depth = resize_rgbd(frame.rgb, frame.depth, factor)
+        result = odometry.step(frame)
+        if device.startswith("cuda"):
+            torch.cuda.synchronize(device)
+        if i == 0:
+            first_map = result.map_time_s
+            continue
+        track.append(result.track_time_s)
+        if result.map_steps:
+            map_calls.append(result.map_time_s)
+            step_times.append(result.map_optimise_time_s / result.map_steps)
+    total = time.perf_counter() - start
+    stamps, poses = odometry.trajectory()
+    out = {"frames": len(seq), "resolution": f"{intrinsics.width}x{intrinsics.height}"}
+    out.update(accuracy(seq, stamps, poses, real))
+    out.update({
+        "events": odometry.tracking_events(),
+        "s_per_frame": round(total / len(seq), 3),
+        "s_per_frame_after_first": round((total - first_map) / max(len(seq) - 1, 1), 3),
+        "tracking_s_per_frame": round(float(np.mean(track)), 3) if track else None,
+        "mapping_s_per_call": round(float(np.mean(map_calls)), 3) if map_calls else None,
+        "mapping_s_per_iter": round(float(np.mean(step_times)), 4) if step_times else None,
+        "first_mapping_s": round(first_map, 2),
+        "points": len(odometry.point_map),
+        "keyframes": len(odometry.keyframes),
+    })
+    return out
+
+
+def accuracy(seq, stamps: np.ndarray, poses: np.ndarray, real: bool) -> dict:
+    """ATE (origin and se3 for synthetic, se3 and over the pieces for real), the largest
+    position error after the alignment, and the RPE over 1, 10, 50 and 100 frames (the
+    longer spans calibrate the pose graph's odometry edges)."""
+    from cpslam.common.eval import evaluate_ate, evaluate_rpe, reference_jumps, segmented_ate
+
+    gt = seq.gt_poses()
+    out = {}
+    aligns = ("se3",) if real else ("origin", "se3")
+    for align in aligns:
+        ate = evaluate_ate(seq.timestamps, gt, stamps, poses, align=align)
+        out[f"ate_{align}_cm"] = round(100 * ate.rmse, 3)
+        if align == aligns[0]:
+            out["max_error_cm"] = round(100 * float(ate.trans_err.max()), 2)
+    if real:
+        jumps = reference_jumps(gt)
+        pieces = segmented_ate(seq.timestamps, gt, stamps, poses, jumps, align="se3")
+        out["ate_se3_pieces_cm"] = round(100 * pieces.rmse, 3)
+        out["gt_jumps_after_frame"] = [int(j) for j in jumps]
+    for delta in (d for d in (1, 10, 50, 100) if d < len(poses)):
+        rpe = evaluate_rpe(seq.timestamps, gt, stamps, poses, delta=delta)
+        out[f"rpe{delta}_mm"] = round(1000 * rpe.trans_mean, 2)
+        out[f"rpe{delta}_deg"] = round(rpe.rot_mean_deg, 3)
+    return out
+
+
+def open3d_odometry(seq_info: dict, frames: int) -> dict:
+    """Open3D's RGB-D odometry (hybrid term, multi-scale, frame to frame, chained from the
+    identity) on the sequence: at 320x240 and, for the 640x480 real frames, at full size."""
+    from cpslam.common.config import load_config
+    from cpslam.common.datasets import open_sequence
+
+    seq = open_sequence(seq_info["path"], frames=slice(0, frames))
+    real = seq_info["kind"] == "real"
+    depth_max = load_config("cpu", env={}).camera.depth_max
+    factors = sorted({SIZE[0] / seq.intrinsics.width, 1.0})
+    out = {}
+    for factor in factors:
+        intr = seq.intrinsics.scaled(factor) if factor != 1.0 else seq.intrinsics
+        poses, seconds, failures = _open3d_chain(seq, intr, factor, depth_max)
+        entry = accuracy(seq, seq.timestamps, poses, real)
+        entry.update(failures=failures, s_per_frame=round(seconds / len(seq), 3))
+        out[f"{intr.width}x{intr.height}"] = entry
+    return out
+
+
+def _open3d_chain(seq, intr, factor: float, depth_max: float):
+    import open3d as o3d
+
+    from cpslam.common.camera import resize_rgbd
+
+    pinhole = o3d.camera.PinholeCameraIntrinsic(intr.width, intr.height, intr.fx, intr.fy,
+                                                intr.cx, intr.cy)
+    option = o3d.pipelines.odometry.OdometryOption()
+    option.depth_max = depth_max
+    jacobian = o3d.pipelines.odometry.RGBDOdometryJacobianFromHybridTerm()
+    poses, previous, failures = [np.eye(4)], None, 0
+    start = time.perf_counter()
+    for i in range(len(seq)):
+        frame = seq[i]
+        rgb, depth = frame.rgb, frame.depth
+        if factor != 1.0:
+            rgb, depth = resize_rgbd(rgb, depth, factor)
+        image = o3d.geometry.RGBDImage.create_from_color_and_depth(
+            o3d.geometry.Image(np.ascontiguousarray(rgb)),
+            o3d.geometry.Image(np.ascontiguousarray(depth)),
+            depth_scale=1.0, depth_trunc=depth_max, convert_rgb_to_intensity=True)
+        if previous is not None:
+            ok, T_prev_cur, _ = o3d.pipelines.odometry.compute_rgbd_odometry(
+                image, previous, pinhole, np.eye(4), jacobian, option)
+            if not ok:
+                failures += 1
+                T_prev_cur = np.eye(4)
+            poses.append(poses[-1] @ T_prev_cur)
+        previous = image
+    return np.stack(poses), time.perf_counter() - start, failures
