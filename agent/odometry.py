@@ -219,7 +219,7 @@ class Odometry:
             kf = self.keyframes.add(frame.index, frame.timestamp, T_world_cam, rgb, depth)
             self.point_map.set_keyframe_poses(kf.kf_id, T_world_cam, self.agent_id)
             kf_id, self._last_kf_count = kf.kf_id, count
-            self._set_reference(kf.kf_id, rgb_t, depth_t)
+            self._set_reference(kf.kf_id)
 
         map_time, map_steps, optimise_time = refit_time, refit_steps, refit_time
         if healthy and (self._last_map_count is None
@@ -291,14 +291,18 @@ class Odometry:
             return {}
         return {k: int(self.recovery.counts.get(k, 0)) for k in ("suspect", "recovered", "lost")}
 
-    def _set_reference(self, kf_id: int, rgb_t: torch.Tensor, depth_t: torch.Tensor) -> None:
-        """Make keyframe kf_id the view frames are compared with (tracking.reference_weight)."""
+    def _set_reference(self, kf_id: int) -> None:
+        """Make keyframe kf_id the view frames are compared with (tracking.reference_weight).
+
+        Built from the keyframe's stored images (depth quantised as stored), so that a run
+        resumed from `state_dict` compares with exactly the same view."""
         if self.tracker.reference_weight <= 0:
             return
+        rgb, depth = self.keyframes.full_rgbd(kf_id)
         intr = self.intrinsics
         self._reference = (kf_id, ReferenceImage.from_rgbd(
-            rgb_t, depth_t, self.keyframes.get(kf_id).T_world_cam,
-            (intr.fx, intr.fy, intr.cx, intr.cy)))
+            torch.from_numpy(rgb).to(self.device), torch.from_numpy(depth).to(self.device),
+            self.keyframes.get(kf_id).T_world_cam, (intr.fx, intr.fy, intr.cx, intr.cy)))
 
     def _guesses(self) -> dict[str, np.ndarray]:
         """The motion models' initial poses of the next frame, from the last frames whose
@@ -425,6 +429,7 @@ class Odometry:
             "fused": self.fused,
             "last_keyframe_count": -1 if self._last_kf_count is None else self._last_kf_count,
             "last_mapping_count": -1 if self._last_map_count is None else self._last_map_count,
+            **({"recovery": self.recovery.state_dict()} if self.recovery is not None else {}),
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -463,6 +468,6 @@ class Odometry:
         self._reference = None
         latest = self.keyframes.latest
         if latest is not None and len(latest.rgb_png):  # the comparison resumes at once
-            rgb, depth = self.keyframes.full_rgbd(latest.kf_id)
-            self._set_reference(latest.kf_id, torch.from_numpy(rgb).to(self.device),
-                                torch.from_numpy(depth).to(self.device))
+            self._set_reference(latest.kf_id)
+        if self.recovery is not None and "recovery" in state:
+            self.recovery.load_state_dict(state["recovery"])

@@ -100,6 +100,16 @@ class Recovery:
                    cfg.window, cfg.iters_factor, cfg.geometric_guess, cfg.relocalise,
                    tracking_iters)
 
+    def state_dict(self) -> dict:
+        """The recent healthy frames' depth errors and the event counts (to resume a run)."""
+        return {"residuals": [float(r) for r in self._residuals],
+                "counts": {k: int(v) for k, v in self.counts.items()}}
+
+    def load_state_dict(self, state: dict) -> None:
+        self._residuals.clear()
+        self._residuals.extend(float(r) for r in state.get("residuals", []))
+        self.counts = Counter({str(k): int(v) for k, v in state.get("counts", {}).items()})
+
     # ---------------------------------------------------------------------------- checks
 
     def check(self, result: TrackResult, T_predicted: np.ndarray) -> str:

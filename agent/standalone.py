@@ -185,18 +185,27 @@ def frame_metrics(
         "peak_gpu_memory_mb": gpu_peak,
         "points": len(odometry.point_map),
         "keyframes": sum(1 for r in results if r.is_keyframe),
+        # Frames the recovery found suspect, recovered and lost (empty with recovery off).
+        "tracking_events": odometry.tracking_events(),
         "decoder_parameters": sum(p.numel() for p in odometry.decoders.parameters()),
         "device": device,
         "torch_threads": torch.get_num_threads(),
         "per_frame": [
             {"index": r.index, "timestamp": r.timestamp, "track_time_s": r.track_time_s,
              "track_iters": r.track_iters, "track_loss": r.track_loss,
-             "map_time_s": r.map_time_s, "map_optimise_time_s": r.map_optimise_time_s,
+             "track_event": r.track_event, "track_inlier_ratio": _finite(r.track_inlier_ratio),
+             "track_residual_m": _finite(r.track_residual_m), "map_time_s": r.map_time_s,
+             "map_optimise_time_s": r.map_optimise_time_s,
              "map_steps": r.map_steps, "points": r.n_points,
              "keyframe": r.is_keyframe}
             for r in results
         ],
     }
+
+
+def _finite(value: float) -> float | None:
+    """JSON has no NaN: a figure that was not measured is null."""
+    return float(value) if np.isfinite(value) else None
 
 
 def _raise_interrupt(signum: int, frame: object) -> None:

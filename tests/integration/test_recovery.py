@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from cpslam.agent.odometry import Odometry
+from cpslam.agent.standalone import frame_metrics
 from cpslam.common.config import load_config
 from cpslam.common.datasets import open_sequence
 from cpslam.common.geometry import se3_exp
@@ -81,6 +82,9 @@ def test_a_bad_guess_is_detected_and_recovered(prefix: dict) -> None:
     assert spoiled[0].track_event == "recovered"
     assert _distance(spoiled[0].T_world_cam, reference) < 0.015
     assert odometry.tracking_events() == {"suspect": 1, "recovered": 1, "lost": 0}
+    metrics = frame_metrics(odometry, spoiled, 1.0, False, "cpu")
+    assert metrics["tracking_events"] == {"suspect": 1, "recovered": 1, "lost": 0}
+    assert metrics["per_frame"][0]["track_event"] == "recovered"
     # Every motion-model guess wrong as well: the RGB-D odometry from the previous frame.
     _, spoiled = _continue(prefix, "recovery.enabled=true", spoil="all")
     assert spoiled[0].track_event == "recovered"
