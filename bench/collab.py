@@ -39,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+KITCHEN = ROOT.parent / "shared" / "data" / "7scenes-kitchen-0-299"
 
 
 def _data(scene: str, agents: int, frames: int, loop: bool, seed: int) -> list[Path]:
@@ -95,7 +96,7 @@ def loop_edges(result, seqs) -> dict:
                "kept": not records.get(e.loop_id, {}).get("outlier", False)}
         odo = result.odometry.get(a)
         if a == b and odo is not None:
-            stamps = dict(zip(np.round(odo[0], 6).tolist(), range(len(odo[0]))))
+            stamps = {s: i for i, s in enumerate(np.round(odo[0], 6).tolist())}
             ia, ib = (stamps.get(round(float(_stamp(seqs, result, a, f)), 6))
                       for f in (kf_frames[a][ka], kf_frames[a][kb]))
             if ia is not None and ib is not None:
@@ -179,82 +180,130 @@ def _stamps_of(agent_result, frame_indices) -> np.ndarray:
     return stamps
 
 
+def _collab_report(result, seqs, false_fraction: float, seed: int, wall_s: float) -> dict:
+    merges = result.final.metrics.get("merges", [])
+    return {"merged": bool(merges), "merge_time_s": [m["time"] for m in merges],
+            **result.evaluation,
+            "loops": {k: v for k, v in result.final.metrics["loops"].items() if k != "list"},
+            "loop_edges": loop_edges(result, seqs),
+            "false_loop_test": _false_loops(result, seqs, false_fraction, seed),
+            "wall_s": round(wall_s, 1)}
+
+
+def _run_real(args, frames: list[str], out: Path) -> dict:
+    from cpslam.agent.standalone import open_for_config
+    from cpslam.common.config import load_config
+    from cpslam.run import run_collab
+
+    cfg = load_config(args.preset, overrides=[*args.sets, f"run.seed={args.seed}"], env={})
+    seqs = [open_for_config(cfg, KITCHEN, frames=f) for f in frames]
+    t0 = time.perf_counter()
+    result = run_collab(cfg, seqs, out, "cpu", show_progress=False)
+    return {"frames": frames, **_collab_report(result, seqs, args.false_fraction, args.seed,
+                                               time.perf_counter() - t0)}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--frames", type=int, default=300)
-    ap.add_argument("--loop-frames", type=int, default=300)
+    ap.add_argument("--frames", type=int, default=300, help="frames per synthetic agent")
+    ap.add_argument("--loop-frames", type=int, default=300, help="frames of the room loop")
     ap.add_argument("--preset", default="cpu")
-    ap.add_argument("--set", action="append", default=[], dest="sets")
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--set", action="append", default=[], dest="sets",
+                    help="config override a.b=value (repeat)")
+    ap.add_argument("--seed", type=int, default=0, help="run.seed")
+    ap.add_argument("--scene-seeds", type=int, nargs="+", default=[0],
+                    help="synthetic apartment scene seeds")
     ap.add_argument("--false-fraction", type=float, default=0.2)
-    ap.add_argument("--skip-loop", action="store_true")
-    ap.add_argument("--skip-collab", action="store_true")
+    ap.add_argument("--skip-loop", action="store_true", help="leave out the room loop")
+    ap.add_argument("--skip-collab", action="store_true",
+                    help="leave out the synthetic apartments")
+    ap.add_argument("--real", action="store_true", help="also run the 7-Scenes frames")
+    ap.add_argument("--real-split", default="0:150,150:300",
+                    help="frame slices of the real agents, comma-separated")
     ap.add_argument("--out", type=Path, default=ROOT / "runs" / "bench-collab")
+    ap.add_argument("--json", type=Path, default=None, help="also write the JSON here")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     import torch
+    from benchinfo import bench_header
 
     torch.set_num_threads(1)
-    report: dict = {"preset": args.preset, "sets": args.sets, "seed": args.seed}
+    report: dict = {**bench_header("collab", sys.argv), "preset": args.preset,
+                    "sets": args.sets, "seed": args.seed}
     if not args.skip_collab:
-        t0 = time.perf_counter()
-        paths = _data("apartment", 2, args.frames, False, args.seed)
-        result, seqs = _run(paths, args.preset, args.sets, args.out / "apartment", args.seed)
-        ev = result.evaluation
-        merges = result.final.metrics.get("merges", [])
-        report["apartment"] = {
-            "merged": bool(merges), "merge_time_s": [m["time"] for m in merges],
-            "merge_frame": [round(m["time"] * 30) for m in merges], **ev,
-            "loops": {k: v for k, v in result.final.metrics["loops"].items() if k != "list"},
-            "false_loop_test": _false_loops(result, seqs, args.false_fraction, args.seed),
-            "wall_s": time.perf_counter() - t0,
-        }
+        report["apartment"] = {}
+        for scene_seed in args.scene_seeds:
+            t0 = time.perf_counter()
+            paths = _data("apartment", 2, args.frames, False, scene_seed)
+            result, seqs = _run(paths, args.preset, args.sets,
+                                args.out / f"apartment-{scene_seed}", args.seed)
+            report["apartment"][str(scene_seed)] = _collab_report(
+                result, seqs, args.false_fraction, args.seed, time.perf_counter() - t0)
     if not args.skip_loop:
         t0 = time.perf_counter()
         paths = _data("room", 1, args.loop_frames, True, args.seed)
-        result, _ = _run(paths, args.preset, args.sets, args.out / "room-loop", args.seed)
-        report["room_loop"] = {**result.evaluation, "wall_s": time.perf_counter() - t0,
+        result, seqs = _run(paths, args.preset, args.sets, args.out / "room-loop", args.seed)
+        report["room_loop"] = {**result.evaluation, "wall_s": round(time.perf_counter() - t0, 1),
+                               "loop_edges": loop_edges(result, seqs),
                                "loops": {k: v for k, v in result.final.metrics["loops"].items()
                                          if k != "list"}}
+    if args.real:
+        split = args.real_split.split(",")
+        report["real_split"] = _run_real(args, split, args.out / "real-split")
+        whole = f"{split[0].split(':')[0]}:{split[-1].split(':')[1]}"
+        report["real_single"] = _run_real(args, [whole], args.out / "real-single")
     _print(report)
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "collab.json").write_text(json.dumps(report, indent=2, default=float))
+    text = json.dumps(report, indent=2, default=float)
+    (args.out / "collab.json").write_text(text)
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(text)
+
+
+def _cm(v) -> str:
+    return "-" if v is None else f"{100 * v:.2f} cm"
+
+
+def _section_rows(name: str, sec: dict) -> list[tuple[str, str]]:
+    fl = sec.get("false_loop_test") or {}
+    base = sec.get("global_joint_se3_rmse_m")
+    odo = sec.get("odometry_joint_se3_rmse_m")
+    edges = sec.get("loop_edges") or {}
+    loops = sec.get("loops") or {}
+    rows = [(f"{name}: joint se3 ATE, pose graph / odometry only",
+             f"{_cm(base)} / {_cm(odo)}" + (f" ({base / odo:.2f}x)" if base and odo else "")),
+            (f"{name}: origin ATE per agent, pose graph", ", ".join(
+                f"{a}: {_cm(v)}" for a, v in sec.get("global_origin_rmse_m", {}).items())),
+            (f"{name}: origin ATE per agent, odometry only", ", ".join(
+                f"{a}: {_cm(v)}" for a, v in sec.get("odometry_origin_rmse_m", {}).items())),
+            (f"{name}: loops accepted / found",
+             f"{loops.get('accepted')} / {loops.get('found')}")]
+    if "merged" in sec:
+        rows.insert(0, (f"{name}: merged (time s)", f"{sec['merged']} {sec['merge_time_s']}"))
+    if edges.get("edges"):
+        rows.append((f"{name}: loop edges vs GT, median / p90 / max",
+                     f"{edges['trans_cm_median']:.2f} / {edges['trans_cm_p90']:.2f} / "
+                     f"{edges['trans_cm_max']:.2f} cm, {edges['rot_deg_median']:.2f} deg median, "
+                     f"chi2 median {edges['chi2_gt_median']:.1f}, kept {edges['kept']} of "
+                     f"{len(edges['edges'])}"))
+    if fl:
+        change = abs(fl["joint_se3_rmse_m"] - base) / base * 100 if base else None
+        rows.append((f"{name}: false loops flagged / injected, ATE with them",
+                     f"{fl.get('false_flagged')} / {fl.get('false_loops')}, "
+                     f"{_cm(fl.get('joint_se3_rmse_m'))}"
+                     + ("" if change is None else f" ({change:.1f} % change)")))
+    rows.append((f"{name}: wall time", f"{sec.get('wall_s', 0):.0f} s"))
+    return rows
 
 
 def _print(report: dict) -> None:
-    def cm(v):
-        return "-" if v is None else f"{100 * v:.2f} cm"
-
     rows = []
-    apt = report.get("apartment")
-    if apt:
-        fl = apt.get("false_loop_test", {})
-        base = apt.get("global_joint_se3_rmse_m")
-        change = (abs(fl["joint_se3_rmse_m"] - base) / base * 100) if fl and base else None
-        rows += [
-            ("apartment merged (frame)", f"{apt['merged']} {apt['merge_frame']}"),
-            ("joint se3 ATE, global (bar <= 2 cm)", cm(base)),
-            ("joint se3 ATE, no pose graph", cm(apt.get("odometry_joint_se3_rmse_m"))),
-            ("origin ATE per agent", ", ".join(f"{a}: {cm(v)}" for a, v in
-                                               apt.get("global_origin_rmse_m", {}).items())),
-            ("origin ATE per agent, no pose graph", ", ".join(
-                f"{a}: {cm(v)}" for a, v in apt.get("odometry_origin_rmse_m", {}).items())),
-            ("false loops injected / true", f"{fl.get('false_loops')} / {fl.get('true_loops')}"),
-            ("false loops flagged as outliers", f"{fl.get('false_flagged')} of "
-                                                f"{fl.get('false_loops')}"),
-            ("joint ATE with false loops (change, bar < 10 %)",
-             f"{cm(fl.get('joint_se3_rmse_m'))} ({'-' if change is None else f'{change:.1f} %'})"),
-            ("wall time", f"{apt['wall_s']:.0f} s"),
-        ]
-    loop = report.get("room_loop")
-    if loop:
-        rows += [
-            ("room loop: ATE with loop closure + PGO", cm(loop.get("global_joint_se3_rmse_m"))),
-            ("room loop: ATE odometry alone", cm(loop.get("odometry_joint_se3_rmse_m"))),
-            ("room loop: loops accepted / found",
-             f"{loop['loops'].get('accepted')} / {loop['loops'].get('found')}"),
-            ("room loop wall time", f"{loop['wall_s']:.0f} s"),
-        ]
+    for seed, sec in report.get("apartment", {}).items():
+        rows += _section_rows(f"apartment {seed}", sec)
+    for key in ("room_loop", "real_split", "real_single"):
+        if key in report:
+            rows += _section_rows(key.replace("_", " "), report[key])
     width = max(len(r[0]) for r in rows) if rows else 0
     for name, value in rows:
         sys.stdout.write(f"{name:<{width}}  {value}\n")
