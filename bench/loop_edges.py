@@ -15,7 +15,9 @@ Sequences: synthetic scenes as bench/odometry.py builds them (`--scenes`, `--sce
 exact ground truth) and the shared 7-Scenes frames (KinectFusion ground truth, which the depth
 data contradict by several centimetres over half a metre: ICP started at the ground-truth
 relative pose moves away from it and lowers its residual, and Open3D's odometry disagrees
-with it by as much; pairs across its one-frame jump are left out).
+with it by as much; pairs across its one-frame jump are left out). For those frames the bench
+also reports Open3D's frame-to-frame RGB-D odometry over the same pairs (`odometry_same_span`):
+a loop edge should be no worse than chaining odometry between its two frames.
 
 Usage: python bench/loop_edges.py [--scenes 4] [--scene-base 100] [--factors 0.5 1]
        [--preset cpu] [--set a.b=v ...] [--calibrate] [--json PATH]
@@ -33,7 +35,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from benchinfo import bench_header  # noqa: E402
-from odometry_runs import KITCHEN, ensure_scene, scene_specs  # noqa: E402
+from odometry_runs import KITCHEN, ensure_scene, open3d_chain, scene_specs  # noqa: E402
 
 CHI2_6_MEDIAN = 5.348
 
@@ -128,7 +130,26 @@ def evaluate(path: Path, factor: float, cfg, args) -> dict:
         out["chi2_raw"].append(float(e @ reg.information @ e))
     out["seconds_per_pair"] = round((time.perf_counter() - start) / max(out["pairs"], 1), 2)
     out.update(_stats(out, cfg.loop.information_scale))
+    if real and out["errors"]:
+        out["odometry_same_span"] = _odometry_same_span(seq, intr, size, gt, out["errors"],
+                                                        cfg.camera.depth_max)
     return out
+
+
+def _odometry_same_span(seq, intr, size: float, gt: np.ndarray, errors: list,
+                        depth_max: float) -> dict:
+    """Open3D's chained odometry between the frames of each accepted pair, against the ground
+    truth: translation median / p90 / max (cm) and rotation median (deg)."""
+    from cpslam.common.geometry import invert, se3_log
+
+    poses, _, _ = open3d_chain(seq, intr, size, depth_max)
+    e = np.array([se3_log(invert(invert(gt[i]) @ gt[j]) @ (invert(poses[i]) @ poses[j]))
+                  for i, j, *_ in errors])
+    t, r = 100 * np.linalg.norm(e[:, :3], axis=1), np.degrees(np.linalg.norm(e[:, 3:], axis=1))
+    return {"trans_cm": {"median": round(float(np.median(t)), 3),
+                         "p90": round(float(np.percentile(t, 90)), 3),
+                         "max": round(float(t.max()), 3)},
+            "rot_deg": {"median": round(float(np.median(r)), 3)}}
 
 
 def overlap(depth_src: np.ndarray, depth_dst: np.ndarray, intr, T_dst_src: np.ndarray) -> float:
@@ -171,9 +192,11 @@ def summarise(sequences: dict, scale: float) -> dict:
             parts = [s for s in sequences.values() if s["real"] == real and s["size"] == size]
             pooled = {"errors": [r for s in parts for r in s["errors"]],
                       "chi2_raw": [c for s in parts for c in s["chi2_raw"]]}
-            out[f"{'real' if real else 'synthetic'}@{size}"] = {
-                "pairs": sum(s["pairs"] for s in parts),
-                "accepted": sum(s["accepted"] for s in parts), **_stats(pooled, scale)}
+            entry = {"pairs": sum(s["pairs"] for s in parts),
+                     "accepted": sum(s["accepted"] for s in parts), **_stats(pooled, scale)}
+            if len(parts) == 1 and "odometry_same_span" in parts[0]:
+                entry["odometry_same_span"] = parts[0]["odometry_same_span"]
+            out[f"{'real' if real else 'synthetic'}@{size}"] = entry
     return out
 
 

@@ -150,14 +150,14 @@ def open3d_odometry(seq_info: dict, frames: int) -> dict:
     out = {}
     for factor in factors:
         intr = seq.intrinsics.scaled(factor) if factor != 1.0 else seq.intrinsics
-        poses, seconds, failures = _open3d_chain(seq, intr, factor, depth_max)
+        poses, seconds, failures = open3d_chain(seq, intr, factor, depth_max)
         entry = accuracy(seq, seq.timestamps, poses, real)
         entry.update(failures=failures, s_per_frame=round(seconds / len(seq), 3))
         out[f"{intr.width}x{intr.height}"] = entry
     return out
 
 
-def _open3d_chain(seq, intr, factor: float, depth_max: float):
+def open3d_chain(seq, intr, factor: float, depth_max: float):
     import open3d as o3d
 
     from cpslam.common.camera import resize_rgbd

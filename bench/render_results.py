@@ -122,11 +122,51 @@ def _loop_edges(report: dict) -> str:
         rows.append((kind, size, f"{s['accepted']} / {s['pairs']}",
                      f"{t['median']} / {t['p90']} / {t['max']}", f"{r['median']} / {r['max']}",
                      s["chi2"]["median"]))
+    spans = [f"{key}: {s['odometry_same_span']['trans_cm']['median']} / "
+             f"{s['odometry_same_span']['trans_cm']['p90']} / "
+             f"{s['odometry_same_span']['trans_cm']['max']} cm, rotation median "
+             f"{s['odometry_same_span']['rot_deg']['median']} deg"
+             for key, s in report["summary"].items() if "odometry_same_span" in s]
+    note = ("\nOpen3D's RGB-D odometry chained between the frames of the same pairs "
+            "(translation median / p90 / max against the same ground truth): "
+            + "; ".join(spans) + ".\n") if spans else ""
     return (f"`loop.information_scale` {report['information_scale']}.\n\n" + _table(rows)
-            + "\n")
+            + "\n" + note)
 
 
-RENDERERS = {"odometry": _odometry, "loop_edges": _loop_edges}
+def _collab(report: dict) -> str:
+    sections = [(f"apartment {seed}", sec) for seed, sec in report.get("apartment", {}).items()]
+    sections += [(key.replace("_", " "), report[key])
+                 for key in ("room_loop", "real_split", "real_single") if key in report]
+    rows = [("run", "joint se3 ATE cm: pose graph / odometry (ratio)", "loops accepted / found",
+             "loop edges vs GT: median / p90 / max cm", "rotation median deg", "chi2 median",
+             "kept by the pose graph", "false loops flagged / injected")]
+    for name, sec in sections:
+        base, odo = sec.get("global_joint_se3_rmse_m"), sec.get("odometry_joint_se3_rmse_m")
+        ate = (f"{100 * base:.2f} / {100 * odo:.2f} ({base / odo:.2f})" if base and odo
+               else "-")
+        loops = sec.get("loops", {})
+        e = sec.get("loop_edges", {})
+        fl = sec.get("false_loop_test") or {}
+        edges = (f"{e['trans_cm_median']} / {e['trans_cm_p90']} / {e['trans_cm_max']}"
+                 if e.get("edges") else "-")
+        if e.get("no_truth"):
+            edges += f" ({e['no_truth']} across a ground-truth jump: no truth)"
+        rows.append((name, ate, f"{loops.get('accepted', '-')} / {loops.get('found', '-')}",
+                     edges, e.get("rot_deg_median", "-"), e.get("chi2_gt_median", "-"),
+                     f"{e['kept']} of {len(e['edges'])}" if e.get("edges") else "-",
+                     f"{fl['false_flagged']} / {fl['false_loops']}" if fl else "-"))
+    same_span = [f"{name}: {sec['loop_edges']['odometry_same_span_trans_cm_median']} cm"
+                 for name, sec in sections
+                 if "odometry_same_span_trans_cm_median" in sec.get("loop_edges", {})]
+    note = ("\nOdometry over the same spans as the loop edges within one agent, median "
+            "translation error: " + ", ".join(same_span) + ".\n") if same_span else ""
+    return (f"Preset `{report.get('preset')}`"
+            f"{', ' + ' '.join(report['sets']) if report.get('sets') else ''}.\n\n"
+            + _table(rows) + "\n" + note)
+
+
+RENDERERS = {"odometry": _odometry, "loop_edges": _loop_edges, "collab": _collab}
 
 
 if __name__ == "__main__":

@@ -86,3 +86,22 @@ def test_odometry_accuracy_leaves_out_spans_longer_than_the_run() -> None:
     out = runs.accuracy(Seq(), stamps, est, real=False)
     assert out["rpe1_mm"] == pytest.approx(1.0) and "rpe10_mm" not in out
     assert out["max_error_cm"] == pytest.approx(0.7)  # frame 7: 7.7 cm instead of 7 cm
+
+
+def test_results_page_is_rendered_from_the_committed_json() -> None:
+    render = _bench_module("render_results")
+    paths = sorted(render.RESULTS.glob("*.json"))
+    assert paths, "bench/results/ holds no result files"
+    assert render.DOC.read_text() == render.render(paths), \
+        "docs/results.md is stale: python bench/render_results.py"
+
+
+def test_collab_table_reads_a_report() -> None:
+    render = _bench_module("render_results")
+    edges = {"edges": [{"trans_cm": 1.0}], "trans_cm_median": 1.0, "trans_cm_p90": 2.0,
+             "trans_cm_max": 3.0, "rot_deg_median": 0.1, "chi2_gt_median": 5.0, "kept": 1}
+    section = {"global_joint_se3_rmse_m": 0.02, "odometry_joint_se3_rmse_m": 0.04,
+               "loops": {"accepted": 1, "found": 2}, "loop_edges": edges,
+               "false_loop_test": {"false_flagged": 1, "false_loops": 1}}
+    text = render._collab({"preset": "cpu", "sets": [], "real_split": section})
+    assert "| real split | 2.00 / 4.00 (0.50) | 1 / 2 | 1.0 / 2.0 / 3.0 |" in text
