@@ -72,10 +72,10 @@ class LoopConfig(Section):
     verify_min_overlap: float = Field(default=0.3, ge=0.0, le=1.0)
     """A loop is accepted when at least this fraction of the smaller view's points overlaps."""
     information_scale: PositiveFloat = 0.09
-    """Factor on a loop's registration information (the ICP Hessian; not in the paper): its points' errors are
-    not independent, so the raw Hessian overstates the certainty. 0.09 puts the median chi2 of
-    ground-truth errors at its expected value on the training scenes (bench/loop_edges.py
-    --calibrate)."""
+    """Factor on a loop's registration information (the ICP Hessian; not in the paper): its
+    points' errors are not independent, so the raw Hessian overstates the certainty. 0.09
+    puts the median chi2 of ground-truth errors at its expected value on the training scenes
+    (bench/loop_edges.py --calibrate)."""
 
     @model_validator(mode="after")
     def _check(self) -> LoopConfig:
