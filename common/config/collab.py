@@ -71,11 +71,11 @@ class LoopConfig(Section):
     """Largest accepted RMS point-to-plane residual of a loop after alignment (m)."""
     verify_min_overlap: float = Field(default=0.3, ge=0.0, le=1.0)
     """A loop is accepted when at least this fraction of the smaller view's points overlaps."""
+    # The ICP Hessian treats every point's error as independent, which neighbouring points'
+    # are not; 0.09 puts the median chi2 of ground-truth errors at its expected value on the
+    # training scenes (bench/loop_edges.py --calibrate).
     information_scale: PositiveFloat = 0.09
-    """Factor on a loop's registration information (the ICP Hessian; not in the paper): its
-    points' errors are not independent, so the raw Hessian overstates the certainty. 0.09
-    puts the median chi2 of ground-truth errors at its expected value on the training scenes
-    (bench/loop_edges.py --calibrate)."""
+    """Factor on a loop's registration information (ICP Hessian; not in the paper)."""
 
     @model_validator(mode="after")
     def _check(self) -> LoopConfig:
