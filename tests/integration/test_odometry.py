@@ -94,7 +94,7 @@ def test_deterministic_and_ground_truth_never_read(sequence_dir: Path) -> None:
 
 def test_two_threads_repeat_bit_for_bit(sequence_dir: Path) -> None:
     """`run.deterministic` is what makes a multi-threaded CPU run repeat itself (with
-    `configure_torch(2, False)` these three runs differed, measured 2026-12-02)."""
+    `configure_torch(2, False)` these three runs differed)."""
     from cpslam.common.device import configure_torch
 
     cfg = load_config("tiny", env={})

@@ -1,4 +1,4 @@
-"""A group merge of two fitted sub-maps renders consistently (issue 5 §7).
+"""A group merge of two fitted sub-maps renders consistently.
 
 Two agents look at the same wall of the synthetic room from 2.6 m apart, each fitting its own
 neural map (features and decoders, the same initial decoders as agents built from one config)
