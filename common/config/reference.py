@@ -21,7 +21,7 @@ from pydantic import BaseModel
 from cpslam.common.config.loader import _leaves, available_presets, preset_text
 from cpslam.common.config.schema import CpslamConfig
 
-__all__ = ["config_reference_markdown"]
+__all__ = ["config_reference_markdown", "preset_comments"]
 
 _INTRO = """\
 # Configuration reference
@@ -47,8 +47,9 @@ directory; `load_config_file` reads it back exactly. `null` is YAML's "none".
 
 
 def config_reference_markdown() -> str:
-    """The whole reference page: how sources combine, the presets, every field."""
-    parts = [_INTRO, _presets_markdown()]
+    """The whole reference page: how sources combine, the presets, paper vs default, every
+    field."""
+    parts = [_INTRO, _presets_markdown(), _paper_markdown()]
     for name, info in CpslamConfig.model_fields.items():
         parts.append(_section_markdown(name, info.annotation))
     return "\n".join(parts)
@@ -57,7 +58,9 @@ def config_reference_markdown() -> str:
 def _presets_markdown() -> str:
     lines = ["## Presets", ""]
     lines.append(
-        "Defaults are the paper's values. A preset lists only what it changes "
+        "The defaults are the paper's model, sampling and step counts with this project's "
+        "loop, pose-graph and federation choices; `paper` turns those back into the paper's "
+        "(next section). A preset lists only what it changes "
         "(`common/config/presets/<name>.yaml`)."
     )
     for name in available_presets():
@@ -70,12 +73,63 @@ def _presets_markdown() -> str:
         if not changes:
             lines.append("Changes nothing.")
             continue
+        if name == "paper":
+            lines.append("Its changes, each with why the default differs: "
+                         "[Paper vs default](#paper-vs-default).")
+            continue
         for key in _leaves(changes):
-            value: Any = changes
-            for part in key.split("."):
-                value = value[part]
-            lines.append(f"- `{key}` = `{json.dumps(value)}`")
+            lines.append(f"- `{key}` = `{json.dumps(_get(changes, key))}`")
     return "\n".join(lines) + "\n"
+
+
+_PAPER_NOTE = """\
+Both use this project's place-recognition descriptor (EfficientNet-Lite0 + untrained NetVLAD):
+the paper's NetVLAD weights are a download, and nothing downloads at run time;
+`place_recognition.weights` takes trained aggregation weights. Tracking, mapping and ray
+sampling are the paper's in both; `cpu` and `tiny` also switch tracking to `lm` and turn
+`recovery` on.
+"""
+
+
+def _paper_markdown() -> str:
+    """The `paper` preset as a table: each difference from the defaults with its reason, the
+    trailing comment of its line in paper.yaml (a test requires one per line)."""
+    text = preset_text("paper")
+    changes = yaml.safe_load(text) or {}
+    reasons = preset_comments(text)
+    defaults = CpslamConfig().model_dump(mode="json")
+    lines = ["## Paper vs default", "", "| key | paper | default | why the default differs |",
+             "|---|---|---|---|"]
+    for key in _leaves(changes):
+        paper, default = _get(changes, key), _get(defaults, key)
+        lines.append(f"| `{key}` | {_cell(json.dumps(paper))} | {_cell(json.dumps(default))} "
+                     f"| {_escape(reasons.get(key, ''))} |")
+    return "\n".join([*lines, "", _PAPER_NOTE])
+
+
+def preset_comments(text: str) -> dict[str, str]:
+    """Trailing `# comment` of every leaf line of a preset, by dotted key."""
+    out: dict[str, str] = {}
+    stack: list[tuple[int, str]] = []  # (indent, key) of the enclosing sections
+    for line in text.splitlines():
+        body, _, comment = line.partition(" #")
+        if not body.strip() or body.lstrip().startswith("#") or ":" not in body:
+            continue
+        indent = len(body) - len(body.lstrip())
+        key, _, value = body.strip().partition(":")
+        while stack and stack[-1][0] >= indent:
+            stack.pop()
+        if value.strip():
+            out[".".join([*(k for _, k in stack), key])] = comment.strip()
+        else:
+            stack.append((indent, key))
+    return out
+
+
+def _get(data: Any, dotted: str) -> Any:
+    for part in dotted.split("."):
+        data = data[part]
+    return data
 
 
 def _section_markdown(name: str, model: Any) -> str:

@@ -1,6 +1,7 @@
 """The configuration tree: one frozen pydantic model per part of the system.
 
-Defaults are the paper's numbers (the `paper` preset). Every field's attribute docstring is its
+Defaults: the paper's model with this project's choices (docs/configuration.md, Paper vs
+default; the `paper` preset is the paper as written). Every field's attribute docstring is its
 description; `config_reference_markdown()` turns them into docs/configuration.md, so the dotted
 field names here are the public `--set section.field=value` surface — rename with care.
 """

@@ -83,6 +83,8 @@ class FieldConfig(Section):
     """Width of the hidden layers of MLP C (per-neighbour feature)."""
     c_layers: PositiveInt = 1
     """Number of hidden layers of MLP C."""
+    c_out: PositiveInt | None = None
+    """Width of C's output, the per-neighbour feature fed to G and U; null = c_hidden."""
     u_hidden: PositiveInt = 128
     """Width of the hidden layers of MLP U (colour decoder)."""
     u_layers: PositiveInt = 2

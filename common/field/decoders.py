@@ -19,14 +19,15 @@ _DIST_EPS = 1e-6
 
 
 class Decoders(nn.Module):
-    """C, G and U with explicit widths; defaults are the paper's (`paper` preset).
+    """C, G and U with explicit widths; defaults are the `gpu` preset's (the paper's but for C's
+    output, 128 in the paper).
 
     Args:
         feature_dim: point feature width F (32 in the paper).
         pe_feature: positional-encoding order on features (1 in the paper).
         pe_offset: positional-encoding order on offsets x - p_k (7 in the paper).
         c_hidden: width of C's hidden layers (256).
-        c_out: width of C's output, the per-neighbour feature (256).
+        c_out: width of C's output, the per-neighbour feature (256; 128 in the paper).
         g_hidden: width of G's hidden layers (256).
         u_hidden: width of U's hidden layers (128).
         u_layers: number of hidden layers of U (2).
