@@ -317,7 +317,8 @@ class AgentLink:
             pm.set_keyframe_poses(keys[sel, 1], moved, int(agent))
         for kf in self.odometry.keyframes:
             self.odometry.keyframes.set_pose(kf.kf_id, _rigid(T_new_old @ kf.T_world_cam))
-        _set_trajectory(self.odometry, [T_new_old @ T for T in _trajectory(self.odometry)])
+        self.odometry.set_frame_poses([_rigid(T_new_old @ T)
+                                       for T in self.odometry.trajectory()[1]])
 
     def _correct_keyframes(self, corrected: dict[int, np.ndarray]) -> None:
         """Own keyframes take the corrected poses; a keyframe the server has not seen yet
@@ -336,9 +337,9 @@ class AgentLink:
             store.set_pose(kf_id, _rigid(delta[kf_id] @ store.get(kf_id).T_world_cam))
         self.odometry.point_map.set_keyframe_poses(
             ids, np.stack([store.get(k).T_world_cam for k in ids]), self.own)
-        poses = _trajectory(self.odometry)
-        _set_trajectory(self.odometry, [delta[k] @ T for k, T in zip(self._frame_kf, poses,
-                                                                      strict=True)])
+        poses = self.odometry.trajectory()[1]
+        self.odometry.set_frame_poses([_rigid(delta[k] @ T)
+                                       for k, T in zip(self._frame_kf, poses, strict=True)])
 
     def _merge_foreign(self, block: ForeignPoints) -> int:
         """Add (or replace) another member's points; returns how many were added."""
@@ -370,16 +371,6 @@ class AgentLink:
                            block.colors[anchored])
             self.stats["foreign_points"] += n
         return n
-
-
-def _trajectory(odometry: Odometry) -> list[np.ndarray]:
-    return list(odometry._poses)  # noqa: SLF001 - see _set_trajectory
-
-
-def _set_trajectory(odometry: Odometry, poses: list[np.ndarray]) -> None:
-    # Odometry has no public setter for its poses yet; the tracker starts from the last ones,
-    # so they must follow the world when the server moves it.
-    odometry._poses = [_rigid(T) for T in poses]  # noqa: SLF001
 
 
 def _rigid(T: np.ndarray) -> np.ndarray:

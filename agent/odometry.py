@@ -256,6 +256,15 @@ class Odometry:
         poses = np.stack(self._poses) if self._poses else np.zeros((0, 4, 4))
         return np.asarray(self._stamps, dtype=np.float64), poses
 
+    def set_frame_poses(self, T_world_cam: np.ndarray | list[np.ndarray]) -> None:
+        """Replace every frame's pose [N, 4, 4] (a world or pose-graph correction from the
+        server): the next frame is tracked from the last ones, so they must follow."""
+        poses = [np.array(T, dtype=np.float64) for T in T_world_cam]
+        if len(poses) != len(self._poses) or any(T.shape != (4, 4) for T in poses):
+            raise ValueError(f"set_frame_poses: expected {len(self._poses)} poses [4, 4], got "
+                             f"{[T.shape for T in poses]}")
+        self._poses = poses
+
     @property
     def n_frames(self) -> int:
         """Frames processed so far."""

@@ -159,6 +159,8 @@ def test_alignment_moves_poses_and_map_together() -> None:
     step = np.linalg.inv(traj[-1]) @ odo.trajectory()[1][-1]
     assert np.linalg.norm(step[:3, 3]) < 0.05  # no jump back to the old world
     np.testing.assert_allclose(kf.T_world_cam, odo.keyframes.get(kf.kf_id).T_world_cam)
+    with pytest.raises(ValueError, match="expected 11 poses"):
+        odo.set_frame_poses(odo.trajectory()[1][:-1])
 
 
 def test_corrected_keyframe_moves_its_points_and_frames() -> None:
