@@ -77,15 +77,16 @@ class Recovery:
 
     def __init__(
         self,
-        residual_jump: float = 3.0,
-        min_inliers: float = 0.5,
-        max_jump_t: float = 0.05,
-        max_jump_r: float = 0.05,
-        window: int = 20,
-        iters_factor: float = 2.0,
-        geometric_guess: bool = True,
-        relocalise: bool = True,
-        iters: int = 30,
+        *,
+        residual_jump: float,
+        min_inliers: float,
+        max_jump_t: float,
+        max_jump_r: float,
+        window: int,
+        iters_factor: float,
+        geometric_guess: bool,
+        relocalise: bool,
+        iters: int,
     ) -> None:
         self.residual_jump, self.min_inliers = residual_jump, min_inliers
         self.max_jump_t, self.max_jump_r = max_jump_t, max_jump_r
@@ -96,9 +97,9 @@ class Recovery:
 
     @classmethod
     def from_config(cls, cfg: RecoveryConfig, tracking_iters: int) -> Recovery:
-        return cls(cfg.residual_jump, cfg.min_inliers, cfg.max_jump_t, cfg.max_jump_r,
-                   cfg.window, cfg.iters_factor, cfg.geometric_guess, cfg.relocalise,
-                   tracking_iters)
+        """The `recovery` section's checks; re-tracking runs iters_factor x tracking_iters."""
+        fields = cfg.model_dump(exclude={"enabled"})
+        return cls(**fields, iters=tracking_iters)
 
     def state_dict(self) -> dict:
         """The recent healthy frames' depth errors and the event counts (to resume a run)."""
