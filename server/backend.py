@@ -30,13 +30,13 @@ from cpslam.protocol import GroupDecoder, KeyframeImage, Message
 from cpslam.server.federator import Federator
 from cpslam.server.fusion import MemberMap
 from cpslam.server.groups import Group, Groups
-from cpslam.server.loops import LoopBook
+from cpslam.server.loops.candidates import LoopBook
+from cpslam.server.loops.pipeline import Candidate, LoopDatabase, LoopRecord, LoopVerifier
 from cpslam.server.pose_graph import PoseGraph, loop_sigmas
 from cpslam.server.registry import Registry
 from cpslam.server.result import FinalResult, finalise_backend
 from cpslam.server.sharing import MemberUpdates
 from cpslam.server.tracks import agent_trajectory, group_kf_poses
-from cpslam.server.verification import Candidate, LoopDatabase, LoopRecord, LoopVerifier
 
 if TYPE_CHECKING:
     from cpslam.common.config import CpslamConfig
@@ -149,7 +149,7 @@ class Backend:
         args.update(kwargs)
         backend = cls(cfg.loop, cfg.federation, cfg.pose_graph, cfg.refinement, fetch_image, **args)
         if cfg.loop.refine and "refine_pose" not in kwargs:  # the paper's rendering refinement
-            from cpslam.server.refine import PoseRefiner
+            from cpslam.server.loops.refinement import PoseRefiner
             backend.refine_pose = PoseRefiner.from_config(cfg, backend.registry)
         return backend
 

@@ -32,8 +32,8 @@ if TYPE_CHECKING:
     from cpslam.common.field import Decoders
     from cpslam.protocol import DecoderWeights, KeyframeImage
     from cpslam.server.groups import Group, Groups
+    from cpslam.server.loops.pipeline import LoopRecord
     from cpslam.server.registry import Registry
-    from cpslam.server.verification import LoopRecord
 
 __all__ = ["Federator"]
 

@@ -35,7 +35,7 @@ from cpslam.protocol import (
 )
 from cpslam.server.backend import Backend
 from cpslam.server.export import export_run
-from cpslam.server.loops import LoopCandidate
+from cpslam.server.loops.candidates import LoopCandidate
 
 F = 8
 KF_EVERY = 50

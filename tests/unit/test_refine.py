@@ -17,7 +17,7 @@ from cpslam.common.geometry import compose, invert, se3_exp
 from cpslam.common.registration import RegistrationParams, verify
 from cpslam.protocol import DecoderWeights, KeyframeImage, KeyframeMsg, SubmapDelta
 from cpslam.server.fusion import View, finetune_decoders
-from cpslam.server.refine import PoseRefiner
+from cpslam.server.loops.refinement import PoseRefiner
 from cpslam.server.registry import Registry
 
 F = 8

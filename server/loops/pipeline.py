@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 
 from cpslam.common.camera import Intrinsics
-from cpslam.server.loops import LoopBook, LoopCandidate
+from cpslam.server.loops.candidates import LoopBook, LoopCandidate
 
 if TYPE_CHECKING:
     from cpslam.common.config.collab import LoopConfig
@@ -288,7 +288,7 @@ def _judge(reg: Any, cfg: LoopConfig) -> str:
 
 
 def _default_database(loop: LoopConfig) -> LoopDatabase:
-    from cpslam.server.loops import DescriptorDatabase
+    from cpslam.server.loops.candidates import DescriptorDatabase
 
     return DescriptorDatabase.from_config(loop)
 

@@ -1,0 +1,1 @@
+"""The loop pipeline: place-recognition candidates, registration, refinement, verification."""
