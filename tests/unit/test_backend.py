@@ -35,7 +35,7 @@ from cpslam.protocol import (
 )
 from cpslam.server.backend import Backend
 from cpslam.server.export import export_run
-from cpslam.server.loops.candidates import LoopCandidate
+from cpslam.server.loops import LoopCandidate
 
 F = 8
 KF_EVERY = 50
@@ -51,7 +51,7 @@ def small_decoders(seed: int = 0) -> Decoders:
 
 
 class CosineDatabase:
-    """Inter-agent cosine search with the two thresholds (stands in for server/loops.py)."""
+    """Inter-agent cosine search with the two thresholds (stands in for `DescriptorDatabase`)."""
 
     def __init__(self, fine: float, coarse: float) -> None:
         self.fine, self.coarse = fine, coarse

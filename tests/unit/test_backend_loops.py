@@ -26,7 +26,7 @@ from cpslam.common.geometry import compose, invert, se3_exp
 from cpslam.common.registration import Registration
 from cpslam.protocol import FramePoses, KeyframeImage, KeyframeMsg, ServerUpdate
 from cpslam.server.backend import Backend
-from cpslam.server.loops.candidates import DescriptorDatabase, LoopCandidate
+from cpslam.server.loops import DescriptorDatabase, LoopCandidate
 
 FRAMES = 120
 KF_EVERY = 10

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cpslam.server.loops.candidates import DescriptorDatabase, LoopBook, LoopCandidate
+from cpslam.server.loops import DescriptorDatabase, LoopBook, LoopCandidate
 
 D = 64
 
