@@ -14,7 +14,7 @@ group-frame trajectory without any pose-graph correction, for comparison), ``fus
 ``evaluation.json`` (computed after the run; nothing reads ground truth while it runs).
 
 Relative poses of loops are the coarse geometric estimates, refined by tracking the loop
-keyframe against the other sub-map when ``loop.refine`` is on (`cpslam.server.refine.PoseRefiner`,
+keyframe against the other sub-map when ``loop.refine`` is on (`cpslam.server.loops.PoseRefiner`,
 wired by `Backend.from_config`; on by default and in ``paper``, off in ``cpu`` and ``tiny``).
 """
 

@@ -6,12 +6,13 @@ for the status query and `finalise` at the end; each returns the messages to sen
 (`Outgoing`). Time comes from the injected ``now`` and keyframe images from ``fetch_image``
 (the server pulls images only for loop candidates and fine-tuning), so tests drive it fully.
 
-Per new keyframe the loop pipeline (`verification`: candidates, image pulls, registration and
-refinement, retries) verifies candidate pairs; a fine loop between two groups merges them
-here (alignment, frames) and the `Federator` (`federator`) averages and fine-tunes their
-decoders; then the group's pose graph is optimised and every member gets a `ServerUpdate`
-(`sharing`: alignment, corrected keyframe poses, other members' points) and, after a merge, a
-`GroupDecoder`. See docs/server.md.
+Per new keyframe the loop pipeline (`loops`: candidates, image pulls, registration,
+refinement, verification, retries) verifies candidate pairs; a fine loop between two groups
+merges them (`groups`: alignment of the two frames) and the `Federator` (`federation`) averages
+and fine-tunes their decoders; then the group's pose graph is optimised and every member gets
+a `ServerUpdate` (`sharing`: alignment, corrected keyframe poses, other members' points) and,
+after a merge, a `GroupDecoder`. `finalise` runs the last pose graph, the map refinement
+(`refinement`) and gathers the `FinalResult` (`result`). See docs/server.md.
 """
 
 from __future__ import annotations
@@ -27,16 +28,16 @@ import torch
 
 from cpslam.common.geometry import compose
 from cpslam.protocol import GroupDecoder, KeyframeImage, Message
-from cpslam.server.federator import Federator
+from cpslam.server.federation import Federator
 from cpslam.server.fusion import MemberMap
 from cpslam.server.groups import Group, Groups
-from cpslam.server.loops import LoopBook
-from cpslam.server.pose_graph import PoseGraph, loop_sigmas
+from cpslam.server.loops import Candidate, LoopBook, LoopDatabase, LoopPipeline, LoopRecord
+from cpslam.server.pose_graph import PoseGraph, PoseGraphResult
+from cpslam.server.refinement import refine_maps
 from cpslam.server.registry import Registry
-from cpslam.server.result import FinalResult, finalise_backend
+from cpslam.server.result import FinalResult, agent_results, pose_graph_figures, run_metrics
 from cpslam.server.sharing import MemberUpdates
-from cpslam.server.tracks import agent_trajectory, group_kf_poses
-from cpslam.server.verification import Candidate, LoopDatabase, LoopRecord, LoopVerifier
+from cpslam.server.tracks import add_group_tracks, corrected_frame_poses, group_kf_poses
 
 if TYPE_CHECKING:
     from cpslam.common.config import CpslamConfig
@@ -72,7 +73,7 @@ class Backend:
             neighbours and radius (m).
         fetch_image: ``(agent_id, kf_id) -> KeyframeImage | None`` (a Zenoh get in the daemon).
         now: monotonic clock (s).
-        refine_pose, database, register, retry_after_s: the loop pipeline's (`LoopVerifier`;
+        refine_pose, database, register, retry_after_s: the loop pipeline's (`LoopPipeline`;
             `from_config` makes `refine_pose` a `PoseRefiner` unless ``loop.refine`` is false).
         decoders_factory, sampler, finetune_lr, finetune_views, seed: the decoder fine-tunes'
             (`Federator`); finetune_lr_features: point features' rate in the final one.
@@ -123,10 +124,10 @@ class Backend:
         self.merges: list[dict] = []
         self.pose_graph_runs: list[dict] = []
         self.t_start = now()
-        self.verifier = LoopVerifier(loop, fetch_image, now, self.t_start, refine_pose, database,
+        self.pipeline = LoopPipeline(loop, fetch_image, now, self.t_start, refine_pose, database,
                                      register, seed, retry_after_s)
         self.federator = Federator(
-            federation, self.registry, self.groups, self.verifier.image, self.kf_poses,
+            federation, self.registry, self.groups, self.pipeline.image, self.kf_poses,
             self.member_maps, now, self.t_start, decoders_factory, sampler, feature_dim,
             cell_size, k, radius, finetune_lr, finetune_views, seed)
         self.sharing = MemberUpdates(self.registry, self.kf_poses, cell_size, share_every_s, now)
@@ -149,7 +150,7 @@ class Backend:
         args.update(kwargs)
         backend = cls(cfg.loop, cfg.federation, cfg.pose_graph, cfg.refinement, fetch_image, **args)
         if cfg.loop.refine and "refine_pose" not in kwargs:  # the paper's rendering refinement
-            from cpslam.server.refine import PoseRefiner
+            from cpslam.server.loops import PoseRefiner
             backend.refine_pose = PoseRefiner.from_config(cfg, backend.registry)
         return backend
 
@@ -158,32 +159,32 @@ class Backend:
     @property
     def loops(self) -> list[LoopRecord]:
         """Every verified candidate, in order."""
-        return self.verifier.records
+        return self.pipeline.records
 
     @property
     def loops_found(self) -> int:
         """Distinct candidate pairs offered for verification."""
-        return self.verifier.found
+        return self.pipeline.found
 
     @property
     def book(self) -> LoopBook:
-        return self.verifier.book
+        return self.pipeline.book
 
     @property
     def database(self) -> LoopDatabase:
-        return self.verifier.database
+        return self.pipeline.database
 
     @property
     def refine_pose(self) -> Callable[..., Any] | None:
-        return self.verifier.refine_pose
+        return self.pipeline.refine_pose
 
     @refine_pose.setter
     def refine_pose(self, refine: Callable[..., Any] | None) -> None:
-        self.verifier.refine_pose = refine
+        self.pipeline.refine_pose = refine
 
     @property
     def _candidates(self) -> list[Candidate]:
-        return self.verifier.queue  # queued for verification
+        return self.pipeline.queue  # queued for verification
 
     @property
     def rounds(self) -> dict[str, FederatedRound]:
@@ -223,10 +224,10 @@ class Backend:
         federated rounds, point sharing. Returns the messages to send."""
         out: list[Outgoing] = []
         for agent, kf in self.registry.take_new_keyframes():
-            self.verifier.query(agent, kf, self.registry.agents[agent].keyframes[kf].descriptor,
+            self.pipeline.query(agent, kf, self.registry.agents[agent].keyframes[kf].descriptor,
                                 self.groups.group_of(agent).group_id)
-        self.verifier.release_due()
-        queue = self.verifier.queue
+        self.pipeline.release_due()
+        queue = self.pipeline.queue
         dirty: dict[str, bool] = {}
         # Pairs that can merge two groups go first: a merge changes what every agent does.
         queue.sort(key=lambda c: (self.groups.same_group(c.agent_a, c.agent_b)
@@ -237,7 +238,7 @@ class Backend:
                     and time.perf_counter() - t0 > self.verify_budget_s):
                 break
             cand = queue.pop(0)
-            record = self.verifier.verify(cand)
+            record = self.pipeline.verify(cand)
             if record is None or not record.accepted:
                 continue
             if not self.groups.same_group(cand.agent_a, cand.agent_b):
@@ -250,7 +251,7 @@ class Backend:
             dirty[self.groups.group_of(cand.agent_a).group_id] = True
         for gid in dirty:
             if gid in self.groups.groups:
-                self._optimise(self.groups.groups[gid])
+                self._optimise_group(self.groups.groups[gid])
                 out += self._updates(self.groups.groups[gid])
         for agent, msg in self.registry.take_new_decoders():
             self.federator.submit(agent, msg)
@@ -277,9 +278,12 @@ class Backend:
         return out
 
     def _merge(self, loop: LoopRecord) -> list[Outgoing]:
-        group, T_new_old, joined = self.federator.merge(loop)
+        for agent in (loop.agent_a, loop.agent_b):  # a merge abandons both groups' rounds
+            self.federator.abandon(self.groups.group_of(agent).group_id)
+        group, _, T_new_old, joined = self.groups.merge_at_loop(
+            loop, self.kf_poses, lambda agent: self.registry.agents[agent].index)
         for m in joined:  # the joining members' keyframes and corrected poses change frame
-            self.verifier.regroup(m, group.group_id)
+            self.pipeline.regroup(m, group.group_id)
             for key in [key for key in self.corrected if key[0] == m]:
                 self.corrected[key] = compose(T_new_old, self.corrected[key])
         self.merges.append({"time": self.now() - self.t_start, "group": group.group_id,
@@ -287,46 +291,32 @@ class Backend:
                             "loop_id": loop.loop_id})
         return _to_groups(self.federator.merged(group))
 
-    def pose_graph(self, groups: list[Group]) -> tuple[PoseGraph, list[LoopRecord],
-                                                        dict[str, Any]]:
-        """The (unoptimised) pose graph of these groups: every member's odometry in its group
-        frame and the accepted loops between members of one group; also those loops and the
-        members' trajectories by agent."""
+    def _optimise(self, groups: list[Group]) -> tuple[PoseGraph, PoseGraphResult | None,
+                                                       list[LoopRecord], dict[str, Any]]:
+        """Optimise the pose graph of these groups (every member's odometry in its group frame,
+        the accepted loops between members of one group); keyframe corrections and loop
+        outliers are kept. Returns the graph, its result (None for an empty graph), its loops
+        and the members' trajectories."""
         graph = PoseGraph.from_config(self.pg_cfg)
-        trajectories = {}
-        for group in groups:
-            for m in group.members:
-                traj = agent_trajectory(self.registry.agents[m])
-                if traj is not None:
-                    graph.add_trajectory(m, traj, group.T_group_agent[m])
-                    trajectories[m] = traj
-        loops = [lp for lp in self.loops if lp.accepted and lp.agent_a in trajectories
-                 and lp.agent_b in trajectories and self.groups.same_group(lp.agent_a, lp.agent_b)]
-        for lp in loops:
-            if lp.information is not None:
-                graph.add_loop(lp.agent_a, lp.kf_a, lp.agent_b, lp.kf_b, np.asarray(lp.T_a_b),
-                               information=np.asarray(lp.information), loop_id=lp.loop_id)
-                continue
-            sig_t, sig_r = loop_sigmas(self.pg_cfg.loop_sigma_t, self.pg_cfg.loop_sigma_r,
-                                       max(lp.rmse, 0.0), min(max(lp.fitness, 1e-3), 1.0))
-            graph.add_loop(lp.agent_a, lp.kf_a, lp.agent_b, lp.kf_b, np.asarray(lp.T_a_b),
-                           sigma_t=sig_t, sigma_r=sig_r, loop_id=lp.loop_id)
-        return graph, loops, trajectories
-
-    def _optimise(self, group: Group) -> None:
-        t0 = time.perf_counter()
-        graph, loops, _ = self.pose_graph([group])
+        loops, trajectories = add_group_tracks(graph, self.registry, groups, self.loops,
+                                               self.pg_cfg.loop_sigma_t, self.pg_cfg.loop_sigma_r)
         if graph.num_nodes == 0:
-            return
+            return graph, None, loops, trajectories
         result = graph.optimize()
         for (agent, kf), T in result.poses.items():
             self.corrected[(agent, kf)] = T
         for lp in loops:
             lp.outlier = lp.loop_id in result.outlier_loops
-        self.pose_graph_runs.append({
-            "group": group.group_id, "nodes": graph.num_nodes, "loops": len(loops),
-            "error_before": result.error_before, "error_after": result.error_after,
-            "outliers": len(result.outlier_loops), "seconds": time.perf_counter() - t0})
+        return graph, result, loops, trajectories
+
+    def _optimise_group(self, group: Group) -> None:
+        t0 = time.perf_counter()
+        graph, result, loops, _ = self._optimise([group])
+        if result is not None:
+            self.pose_graph_runs.append({
+                "group": group.group_id, "nodes": graph.num_nodes, "loops": len(loops),
+                "error_before": result.error_before, "error_after": result.error_after,
+                "outliers": len(result.outlier_loops), "seconds": time.perf_counter() - t0})
 
     def _updates(self, group: Group) -> list[Outgoing]:
         """A `ServerUpdate` for every member of the group."""
@@ -341,24 +331,39 @@ class Backend:
 
     def finalise(self) -> FinalResult:
         """Final pose graph over everything, refined fused maps, trajectories, metrics."""
-        self.verifier.last_chance()  # retries are due now, not in retry_after_s
+        self.pipeline.last_chance()  # retries are due now, not in retry_after_s
         self.step()
         self.registry.drop_unresolved()
-        return finalise_backend(self)
+        t0 = time.perf_counter()
+        groups = list(self.groups.groups.values())
+        graph, result, loops, trajectories = self._optimise(groups)
+        frame_fix = {} if result is None else corrected_frame_poses(graph, result, trajectories)
+        pg = pose_graph_figures(graph, result, loops)
+        t_graph = time.perf_counter() - t0
+        agents = agent_results(groups, self.registry, self.kf_poses, frame_fix)
+        t1 = time.perf_counter()
+        maps, decoders, refined = refine_maps(
+            groups, self.member_maps, lambda a: self.registry.agents[a].decoder,
+            self.federator.finetune, self.feature_dim, self.cell_size,
+            self.refine_cfg.grid_filter, self.refine_cfg.finetune_iters,
+            self.finetune_lr_features)
+        timings = {"final_pose_graph_s": t_graph, "refinement_s": time.perf_counter() - t1}
+        main = max(maps, key=lambda g: (len(self.groups.groups[g].members), len(maps[g])),
+                   default=None)
+        metrics = run_metrics(groups, self.registry, agents, self.loops, self.loops_found,
+                              self.merges, self.rounds_closed, self.pose_graph_runs, pg,
+                              refined, timings)
+        metrics["main_group"] = main  # the group written as fused_map.* / decoders_<g>.pt
+        return FinalResult(agents, maps, decoders, main, graph if graph.num_nodes else None,
+                           metrics)
 
     def status(self) -> dict:
         """JSON summary for the status query: agents, groups, loops, rounds."""
         return {
-            "agents": {
-                a: {"index": r.index, "alive": r.alive, "keyframes": len(r.keyframes),
-                    "frames": len(r.frames), "points": len(r.points),
-                    "pending": len(r.pending_points) + len(r.pending_frames),
-                    "messages": r.messages, "bytes": r.bytes, "acked_seq": r.seq_floor,
-                    "dropped": dict(r.dropped)}
-                for a, r in self.registry.agents.items()},
+            "agents": {a: r.status() for a, r in self.registry.agents.items()},
             "groups": {g.group_id: {"members": g.members, "epoch": g.epoch, "round": g.round}
                        for g in self.groups.groups.values()},
-            "loops": self.verifier.status(),
+            "loops": self.pipeline.status(),
             "rounds": {"closed": len(self.rounds_closed), "open": sorted(self.rounds)},
             "merges": len(self.merges),
             "dropped": dict(self.registry.dropped),
@@ -367,7 +372,7 @@ class Backend:
     def state_dict(self) -> dict:
         """Everything accepted, as python data and tensors (``torch.save``-able, loadable with
         ``weights_only=True``). Open federated rounds are not kept: agents resubmit."""
-        loops = self.verifier.state_dict()
+        loops = self.pipeline.state_dict()
         return {
             "registry": self.registry.state_dict(), "groups": self.groups.state_dict(),
             "foreign": self.sharing.foreign.state_dict(),
@@ -384,7 +389,7 @@ class Backend:
         self.registry.load_state_dict(state["registry"])
         self.groups.load_state_dict(state["groups"])
         self.sharing.foreign.load_state_dict(state["foreign"])
-        self.verifier.load_state_dict(state)
+        self.pipeline.load_state_dict(state)
         self.corrected = {(a, int(k)): T.numpy().copy() for a, k, T in state["corrected"]}
         self.federator.rounds = {}
         self.federator.rounds_closed = list(state["rounds_closed"])

@@ -6,17 +6,26 @@ them: the surviving group keeps its id and frame (the world of its anchor agent)
 group's members are re-expressed in it. Every member has an alignment ``T_group_agent`` that
 maps its own world into the group frame and an epoch that grows whenever that alignment
 changes (the agents echo it as ``world_epoch``).
+
+`Groups.merge_at_loop` is the group alignment of the paper's centralised stage: the loop's
+relative pose between two keyframes, with both keyframes' current poses in their group
+frames, gives the transform between the two groups' frames.
 """
 
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
 from cpslam.common.geometry import compose, invert, is_rigid
+
+if TYPE_CHECKING:
+    from cpslam.server.loops import LoopRecord
 
 __all__ = ["Group", "Groups"]
 
@@ -120,6 +129,36 @@ class Groups:
         logger.info("group %s absorbed group %s: members %s", ga.group_id, gb.group_id,
                     ga.members)
         return ga
+
+    def merge_at_loop(self, loop: LoopRecord, kf_poses: Callable[[str], dict[int, np.ndarray]],
+                      join_index: Callable[[str], int]) -> tuple[Group, str, np.ndarray,
+                                                                 list[str]]:
+        """Merge the groups of a verified loop between them.
+
+        Args:
+            loop: the loop (``T_a_b`` maps keyframe b's camera frame into keyframe a's).
+            kf_poses: ``agent -> {kf_id: T_group_kf}``, best current keyframe poses.
+            join_index: order in which agents joined; the group whose anchor joined first
+                keeps its id and frame, so frames change as little as possible.
+
+        Returns:
+            The merged group, the id of the group it absorbed, ``T_new_old`` (the absorbed
+            group's frame into the merged one) and the members that changed frame.
+        """
+        a, b = loop.agent_a, loop.agent_b
+        ga, gb = self.group_of(a), self.group_of(b)
+        if join_index(gb.anchor) < join_index(ga.anchor):
+            ga, gb = gb, ga
+        survivor = a if ga.group_id == self.group_of(a).group_id else b
+        other = b if survivor == a else a
+        T_s_o = np.asarray(loop.T_a_b) if survivor == a else invert(np.asarray(loop.T_a_b))
+        kf_s = loop.kf_a if survivor == a else loop.kf_b
+        kf_o = loop.kf_b if survivor == a else loop.kf_a
+        T_ga_gb = compose(kf_poses(survivor)[kf_s], T_s_o, invert(kf_poses(other)[kf_o]))
+        joined = sorted(gb.members)
+        T_world = compose(invert(ga.T_group_agent[survivor]), T_ga_gb, gb.T_group_agent[other])
+        absorbed = gb.group_id
+        return self.merge(survivor, other, T_world), absorbed, T_ga_gb, joined
 
     def state_dict(self) -> dict:
         return {"groups": [g.state_dict() for g in self.groups.values()]}

@@ -87,6 +87,14 @@ class AgentRecord:
             self.index, {k: r.T_own_kf for k, r in self.keyframes.items()}, feature_dim, cell_size
         )
 
+    def status(self) -> dict:
+        """The record's counts for the server's status query."""
+        return {"index": self.index, "alive": self.alive, "keyframes": len(self.keyframes),
+                "frames": len(self.frames), "points": len(self.points),
+                "pending": len(self.pending_points) + len(self.pending_frames),
+                "messages": self.messages, "bytes": self.bytes, "acked_seq": self.seq_floor,
+                "dropped": dict(self.dropped)}
+
     def odometry(self) -> dict[int, np.ndarray]:
         """Keyframe poses in the own world chained from the relative poses T_prev_kf_kf.
 

@@ -2,20 +2,27 @@
 
 The sequential edges of the pose graph are the agent's odometry (``T_prev_kf_kf`` chained, see
 `AgentRecord.odometry`) and its frames' poses relative to their keyframes; the pose graph
-re-anchors them in the group frame with the member's alignment.
+re-anchors them in the group frame with the member's alignment; `add_group_tracks` puts a
+set of groups' members and their loops into one graph.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from cpslam.common.geometry import compose, invert
-from cpslam.server.pose_graph import AgentTrajectory
-from cpslam.server.registry import AgentRecord
+from cpslam.server.pose_graph import AgentTrajectory, PoseGraph, PoseGraphResult, loop_sigmas
+from cpslam.server.registry import AgentRecord, Registry
 
-__all__ = ["agent_trajectory", "group_kf_poses", "trajectory_poses"]
+if TYPE_CHECKING:
+    from cpslam.server.groups import Group
+    from cpslam.server.loops import LoopRecord
+
+__all__ = ["add_group_tracks", "agent_trajectory", "corrected_frame_poses", "group_kf_poses",
+           "trajectory_poses"]
 
 
 def agent_trajectory(rec: AgentRecord) -> AgentTrajectory | None:
@@ -78,3 +85,43 @@ def trajectory_poses(rec: AgentRecord, kf_poses: Mapping[int, np.ndarray],
         return np.zeros(0), np.zeros((0, 4, 4))
     return (np.asarray([entries[f][0] for f in order], np.float64),
             np.stack([entries[f][1] for f in order]))
+
+
+def add_group_tracks(graph: PoseGraph, registry: Registry, groups: list[Group],
+                     loops: list[LoopRecord], loop_sigma_t: float, loop_sigma_r: float
+                     ) -> tuple[list[LoopRecord], dict[str, AgentTrajectory]]:
+    """Add every member's odometry (in its group frame) and the accepted `loops` between
+    members of one group to `graph`. Returns those loops and the members' trajectories.
+
+    A loop weighs by its registration's information when it has one, else by sigmas from
+    its overlap and residual (`loop_sigmas`).
+    """
+    trajectories, group_of = {}, {}
+    for group in groups:
+        for m in group.members:
+            group_of[m] = group.group_id
+            traj = agent_trajectory(registry.agents[m])
+            if traj is not None:
+                graph.add_trajectory(m, traj, group.T_group_agent[m])
+                trajectories[m] = traj
+    used = [lp for lp in loops if lp.accepted and lp.agent_a in trajectories
+            and lp.agent_b in trajectories and group_of[lp.agent_a] == group_of[lp.agent_b]]
+    for lp in used:
+        if lp.information is not None:
+            graph.add_loop(lp.agent_a, lp.kf_a, lp.agent_b, lp.kf_b, np.asarray(lp.T_a_b),
+                           information=np.asarray(lp.information), loop_id=lp.loop_id)
+            continue
+        sig_t, sig_r = loop_sigmas(loop_sigma_t, loop_sigma_r, max(lp.rmse, 0.0),
+                                   min(max(lp.fitness, 1e-3), 1.0))
+        graph.add_loop(lp.agent_a, lp.kf_a, lp.agent_b, lp.kf_b, np.asarray(lp.T_a_b),
+                       sigma_t=sig_t, sigma_r=sig_r, loop_id=lp.loop_id)
+    return used, trajectories
+
+
+def corrected_frame_poses(graph: PoseGraph, result: PoseGraphResult,
+                          trajectories: Mapping[str, AgentTrajectory]
+                          ) -> dict[str, dict[int, np.ndarray]]:
+    """``agent -> {frame index: T_group_frame}`` of every frame an optimised graph holds."""
+    return {m: dict(zip(traj.frame_indices.tolist(), graph.corrected_frames(result, m),
+                        strict=True))
+            for m, traj in trajectories.items()}

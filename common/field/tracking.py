@@ -32,7 +32,7 @@ With "adam" the pose is the initial guess times an se(3) increment as above; "lm
 same pixels and samples and ignores lr, lr_end_factor, keep_best, early_stop_tol and err_lo.
 
 Used by the agent (every frame against its own map) and by the server (a loop keyframe against
-another agent's sub-map, `cpslam.server.refine`), so it lives with the field in `common/`.
+another agent's sub-map, `cpslam.server.loops.refinement`), so it lives with the field in `common/`.
 """
 
 from __future__ import annotations

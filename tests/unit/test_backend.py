@@ -51,7 +51,7 @@ def small_decoders(seed: int = 0) -> Decoders:
 
 
 class CosineDatabase:
-    """Inter-agent cosine search with the two thresholds (stands in for server/loops.py)."""
+    """Inter-agent cosine search with the two thresholds (stands in for `DescriptorDatabase`)."""
 
     def __init__(self, fine: float, coarse: float) -> None:
         self.fine, self.coarse = fine, coarse

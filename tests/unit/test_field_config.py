@@ -8,7 +8,7 @@ from cpslam.common.camera import Intrinsics
 from cpslam.common.config import load_config
 from cpslam.common.field.tracking import Tracker
 from cpslam.common.field_config import sampler_from_config, tracker_args_from_config
-from cpslam.server.refine import PoseRefiner
+from cpslam.server.loops import PoseRefiner
 
 
 def test_tracker_args_cover_every_tracker_keyword() -> None:

@@ -142,15 +142,21 @@ def _imported(path: Path, package: str) -> Iterator[tuple[int, str]]:
             for alias in node.names:
                 yield node.lineno, alias.name
         elif isinstance(node, ast.ImportFrom):
-            module = node.module or ""
-            if node.level:  # relative to the module's own package
-                parts = package.split(".")
-                module = ".".join([*parts[: len(parts) - node.level + 1], *filter(None, [module])])
+            module = _from_module(node, package)
             if module == "cpslam":
                 for alias in node.names:
                     yield node.lineno, f"cpslam.{alias.name}"
             else:
                 yield node.lineno, module
+
+
+def _from_module(node: ast.ImportFrom, package: str) -> str:
+    """The absolute module of a `from ... import` in `package`."""
+    module = node.module or ""
+    if node.level:  # relative to the module's own package
+        parts = package.split(".")
+        module = ".".join([*parts[: len(parts) - node.level + 1], *filter(None, [module])])
+    return module
 
 
 def _violations(root: Path, folder: str) -> list[str]:
@@ -191,3 +197,39 @@ def test_layer_check_sees_every_kind_of_import(tmp_path: Path) -> None:
         "agent/sub/mod.py:9 imports cpslam.server",
     ]
     assert _violations(tmp_path, "protocol") == ["protocol/codec.py:1 imports torch.nn"]
+
+
+# The back end orchestrates: the modules it drives (loops, groups, federation, refinement,
+# result, ...) get their inputs handed in, so only the daemon that owns a back end imports it
+# and no import circle through backend.py can form.
+BACKEND_OWNERS = {"backend.py", "node.py"}
+
+
+def _imports_backend(path: Path, package: str) -> list[int]:
+    lines = [line for line, name in _imported(path, package)
+             if name == "cpslam.server.backend" or name.startswith("cpslam.server.backend.")]
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):  # from cpslam.server import …
+        if (isinstance(node, ast.ImportFrom) and _from_module(node, package) == "cpslam.server"
+                and any(alias.name == "backend" for alias in node.names)):
+            lines.append(node.lineno)
+    return sorted(lines)
+
+
+def test_only_the_daemon_imports_the_backend() -> None:
+    bad = []
+    for path in sorted((ROOT / "server").rglob("*.py")):
+        rel = path.relative_to(ROOT / "server")
+        if rel.as_posix() in BACKEND_OWNERS:
+            continue
+        package = ".".join(["cpslam.server", *rel.parent.parts])
+        bad += [f"server/{rel.as_posix()}:{line}" for line in _imports_backend(path, package)]
+    assert not bad, "imports cpslam.server.backend (hand the data in instead): " + ", ".join(bad)
+
+
+def test_backend_import_check_sees_every_kind_of_import(tmp_path: Path) -> None:
+    mod = tmp_path / "mod.py"
+    mod.write_text("from typing import TYPE_CHECKING\n"
+                   "if TYPE_CHECKING:\n    from cpslam.server.backend import Backend\n"
+                   "from .. import backend\n"
+                   "def f():\n    from cpslam.server import backend\n")
+    assert _imports_backend(mod, "cpslam.server.loops") == [3, 4, 6]

@@ -1,8 +1,8 @@
-"""Loop pose refinement (`cpslam.server.refine`): tracking a keyframe against another agent's
-sub-map held by the registry recovers a perturbed relative pose; the coarse pose is kept (and
-rejected when it does not verify) where the refinement cannot help or is not needed;
-intra-agent sub-maps leave out the query keyframe's own points; the back end gets a refiner
-by default."""
+"""Loop pose refinement (`cpslam.server.loops.refinement`): tracking a keyframe against
+another agent's sub-map held by the registry recovers a perturbed relative pose; the coarse
+pose is kept (and rejected when it does not verify) where the refinement cannot help or is not
+needed; intra-agent sub-maps leave out the query keyframe's own points; the back end gets a
+refiner by default."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ from cpslam.common.geometry import compose, invert, se3_exp
 from cpslam.common.registration import RegistrationParams, verify
 from cpslam.protocol import DecoderWeights, KeyframeImage, KeyframeMsg, SubmapDelta
 from cpslam.server.fusion import View, finetune_decoders
-from cpslam.server.refine import PoseRefiner
+from cpslam.server.loops import PoseRefiner
 from cpslam.server.registry import Registry
 
 F = 8

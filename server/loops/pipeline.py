@@ -1,12 +1,13 @@
-"""The back end's loop pipeline: candidates from the descriptor database, each pair verified
-once, the verdicts as `LoopRecord`s.
+"""The loop pipeline: candidates from the descriptor database, each pair registered, refined
+and verified once, the verdicts as `LoopRecord`s.
 
-Per new keyframe: descriptor query -> candidates (fine/coarse) -> `LoopBook` (each pair
-verified once; one whose images could not be pulled is tried again ``retry_after_s`` later, up
-to ``loop.max_attempts`` tries) -> both images pulled (cached) -> coarse registration
-(RANSAC + ICP, or the identity with ``loop.coarse_method: none``, the paper) -> optional
-rendering-based refinement (``refine_pose``) -> accept/reject by overlap and residual. What
-an accepted loop then does (merge, pose graph) is the back end's business (`backend`).
+Per new keyframe: descriptor query -> candidates (fine/coarse, `candidates`) -> `LoopBook`
+(`book`: each pair verified once; one whose images could not be pulled is tried again
+``retry_after_s`` later, up to ``loop.max_attempts`` tries) -> both images pulled (cached) ->
+coarse registration (`registration`: RANSAC + ICP, or the identity with ``loop.coarse_method:
+none``, the paper) -> optional rendering-based refinement (``refine_pose``, `refinement`) ->
+accept/reject by overlap and residual (`verification`). What an accepted loop then does
+(merge, pose graph) is the back end's business (`cpslam.server.backend`).
 """
 
 from __future__ import annotations
@@ -15,68 +16,31 @@ import logging
 import time
 from collections import OrderedDict
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
-from typing import TYPE_CHECKING, Any, Protocol
+from dataclasses import asdict
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from cpslam.common.camera import Intrinsics
-from cpslam.server.loops import LoopBook, LoopCandidate
+from cpslam.server.loops.book import LoopBook
+from cpslam.server.loops.candidates import (
+    Candidate,
+    DescriptorDatabase,
+    LoopCandidate,
+    LoopDatabase,
+)
+from cpslam.server.loops.registration import coarse_register
+from cpslam.server.loops.verification import LoopRecord, judge, loop_record
 
 if TYPE_CHECKING:
     from cpslam.common.config.collab import LoopConfig
     from cpslam.protocol import KeyframeImage
 
-__all__ = ["Candidate", "LoopDatabase", "LoopRecord", "LoopVerifier"]
+__all__ = ["LoopPipeline"]
 
 logger = logging.getLogger(__name__)
 
 
-class Candidate(Protocol):
-    """What the loop database returns (`cpslam.server.loops.LoopCandidate`)."""
-
-    agent_a: str
-    kf_a: int
-    agent_b: str
-    kf_b: int
-    score: float
-    kind: str
-
-
-class LoopDatabase(Protocol):
-    def add(self, agent_id: str, kf_id: int, descriptor: np.ndarray, group: str) -> Any: ...
-    def query(self, agent_id: str, kf_id: int, descriptor: np.ndarray) -> list[Candidate]: ...
-
-
-@dataclass
-class LoopRecord:
-    """One verified candidate, accepted or rejected."""
-
-    loop_id: int
-    agent_a: str
-    kf_a: int
-    agent_b: str
-    kf_b: int
-    score: float
-    kind: str
-    accepted: bool
-    reason: str
-    T_a_b: list | None
-    fitness: float
-    rmse: float
-    stamp: float
-    seconds: float
-    merged: bool = False
-    outlier: bool = False
-    method: str = ""  # how T_a_b was found: "ransac+icp", "render" (refined), "coarse" (kept)
-    refinement: dict | None = None  # what `PoseRefiner` did (JSON-able)
-    # Information [6, 6] of T_a_b (right perturbation, translation first): the registration's
-    # times loop.information_scale; None when the registration gave none (sigmas from
-    # overlap and residual then).
-    information: list | None = None
-
-
-class LoopVerifier:
+class LoopPipeline:
     """Loop candidates queued, verified and recorded (see the module docstring).
 
     Args:
@@ -108,8 +72,8 @@ class LoopVerifier:
         self.loop_cfg, self.fetch_image = loop, fetch_image
         self.now, self.t_start = now, t_start
         self.refine_pose = refine_pose
-        self.database = database if database is not None else _default_database(loop)
-        self.register = register or _default_register(loop, seed)
+        self.database = database if database is not None else DescriptorDatabase.from_config(loop)
+        self.register = register or coarse_register(loop, seed)
         self.retry_after_s = retry_after_s
         self.book = LoopBook(max_attempts=loop.max_attempts)
         self.records: list[LoopRecord] = []
@@ -188,23 +152,12 @@ class LoopVerifier:
                     # rarely verifies by itself: refine every pair.
                     refined = self.refine_pose(cand, reg.T_dst_src, img_a, img_b)
                     reg = refined if refined is not None else reg
-                reason = _judge(reg, self.loop_cfg)
+                reason = judge(reg, self.loop_cfg)
             except Exception as exc:  # noqa: BLE001 - a failing registration rejects the pair
                 logger.exception("registration of %s failed", _pair(cand))
                 reason = f"registration error: {exc}"
-        record = LoopRecord(
-            loop_id=len(self.records), agent_a=cand.agent_a, kf_a=int(cand.kf_a),
-            agent_b=cand.agent_b, kf_b=int(cand.kf_b), score=float(cand.score),
-            kind=str(cand.kind), accepted=not reason, reason=reason,
-            T_a_b=None if reg is None else np.asarray(reg.T_dst_src, np.float64).tolist(),
-            fitness=float(reg.fitness) if reg is not None else 0.0,
-            rmse=float(reg.inlier_rmse) if reg is not None and np.isfinite(reg.inlier_rmse)
-            else -1.0,
-            stamp=self.now() - self.t_start, seconds=time.perf_counter() - t0,
-            method=getattr(reg, "method", ""),
-            refinement=(getattr(reg, "details", None) or {}).get("refinement"),
-            information=_information(reg, self.loop_cfg.information_scale),
-        )
+        record = loop_record(len(self.records), cand, reg, reason, self.now() - self.t_start,
+                             time.perf_counter() - t0, self.loop_cfg.information_scale)
         self.records.append(record)
         if not unavailable:  # (an unavailable pair's last try was recorded above)
             self.book.record(cand, accepted=record.accepted)
@@ -262,61 +215,3 @@ class LoopVerifier:
 def _pair(c: Candidate) -> tuple[str, int, str, int]:
     a, b = (c.agent_a, int(c.kf_a)), (c.agent_b, int(c.kf_b))
     return (*min(a, b), *max(a, b))
-
-
-def _information(reg: Any, scale: float) -> list | None:
-    """The registration's information matrix times `scale`, when it is positive definite."""
-    info = getattr(reg, "information", None)
-    if info is None or not getattr(reg, "success", False):
-        return None
-    info = scale * np.asarray(info, dtype=np.float64)
-    info = 0.5 * (info + info.T)
-    if not np.all(np.isfinite(info)) or np.linalg.eigvalsh(info).min() <= 0:
-        return None
-    return info.tolist()
-
-
-def _judge(reg: Any, cfg: LoopConfig) -> str:
-    """Empty when the registration passes the thresholds, else why not."""
-    if not reg.success:
-        return reg.reason or "registration failed"
-    if not reg.inlier_rmse <= cfg.verify_max_residual:
-        return f"residual {reg.inlier_rmse:.4f} m > {cfg.verify_max_residual}"
-    if not reg.fitness >= cfg.verify_min_overlap:
-        return f"overlap {reg.fitness:.3f} < {cfg.verify_min_overlap}"
-    return ""
-
-
-def _default_database(loop: LoopConfig) -> LoopDatabase:
-    from cpslam.server.loops import DescriptorDatabase
-
-    return DescriptorDatabase.from_config(loop)
-
-
-def _default_register(loop: LoopConfig, seed: int) -> Callable[[KeyframeImage, KeyframeImage],
-                                                                Any]:
-    def register(src: KeyframeImage, dst: KeyframeImage) -> Any:
-        from cpslam.common.registration import RegistrationParams, register_rgbd, verify
-
-        params = RegistrationParams.from_config(loop, seed)
-        if loop.coarse_method == "none":
-            # The paper: no coarse stage, the loop keyframe starts at the other keyframe's
-            # pose (identity relative pose) and only the rendering refinement moves it.
-            result = verify(_rgbd(src), _rgbd(dst), _intrinsics(src), np.eye(4), params,
-                            dst_intrinsics=_intrinsics(dst))
-            result.method = "identity"
-            return result
-        return register_rgbd(_rgbd(src), _rgbd(dst), _intrinsics(src), params,
-                             dst_intrinsics=_intrinsics(dst))
-
-    return register
-
-
-def _rgbd(img: KeyframeImage) -> tuple[np.ndarray, np.ndarray]:
-    depth = img.depth_metres()
-    rgb = img.rgb if img.rgb is not None else np.zeros((*depth.shape, 3), np.uint8)
-    return rgb, depth
-
-
-def _intrinsics(img: KeyframeImage) -> Intrinsics:
-    return Intrinsics(img.fx, img.fy, img.cx, img.cy, img.width, img.height)

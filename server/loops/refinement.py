@@ -51,6 +51,7 @@ from cpslam.common.field import Decoders, NeuralPointMap, RaySampler
 from cpslam.common.field.tracking import Tracker
 from cpslam.common.geometry import compose, invert
 from cpslam.common.registration import Registration, RegistrationParams, verify
+from cpslam.server.loops.registration import keyframe_intrinsics, keyframe_rgbd
 
 if TYPE_CHECKING:
     from cpslam.common.config import CpslamConfig
@@ -168,8 +169,8 @@ class PoseRefiner:
         keyframe b sits at ``T_B_b``), then keep the better of coarse and refined."""
         t0 = time.perf_counter()
         T_a_b = np.asarray(T_a_b, np.float64)
-        intr_a, intr_b = _intrinsics(img_a), _intrinsics(img_b)
-        rgb_a, depth_a = _rgbd(img_a)
+        intr_a, intr_b = keyframe_intrinsics(img_a), keyframe_intrinsics(img_b)
+        rgb_a, depth_a = keyframe_rgbd(img_a)
         depth_t = torch.from_numpy(depth_a).to(point_map.device)
         rgb_t = torch.from_numpy(rgb_a).to(point_map.device).float() / 255.0
         tracker = Tracker(intr_a, self.sampler, **self.tracker_args)
@@ -185,7 +186,7 @@ class PoseRefiner:
                               torch.Generator().manual_seed(seed + 1))
             losses.append(out.losses[0] if out.losses else math.inf)
         loss_coarse, loss_refined = losses
-        src, dst = _rgbd(img_b), (rgb_a, depth_a)
+        src, dst = keyframe_rgbd(img_b), (rgb_a, depth_a)
         refined = verify(src, dst, intr_b, T_a_b_ref, self.params, dst_intrinsics=intr_a)
         coarse = verify(src, dst, intr_b, T_a_b, self.params, dst_intrinsics=intr_a)
         if not refined.success:
@@ -219,15 +220,3 @@ class PoseRefiner:
                     result.details["refinement"]["moved_deg"], loss_coarse, loss_refined,
                     result.seconds)
         return result
-
-
-def _rgbd(img: KeyframeImage) -> tuple[np.ndarray, np.ndarray]:
-    depth = img.depth_metres()
-    if depth is None:
-        raise ValueError(f"keyframe image {img.agent_id}/{img.kf_id} has no depth")
-    rgb = img.rgb if img.rgb is not None else np.zeros((*depth.shape, 3), np.uint8)
-    return rgb, depth
-
-
-def _intrinsics(img: KeyframeImage) -> Intrinsics:
-    return Intrinsics(img.fx, img.fy, img.cx, img.cy, img.width, img.height)
