@@ -71,7 +71,7 @@ class KeyframeStore:
         downscale: the stored RGB-D copies are this many times smaller per side.
     """
 
-    def __init__(self, intrinsics: Intrinsics, downscale: int = 2) -> None:
+    def __init__(self, intrinsics: Intrinsics, downscale: int) -> None:
         if downscale < 1:
             raise ValueError(f"KeyframeStore: downscale must be >= 1, got {downscale}")
         self.intrinsics = intrinsics

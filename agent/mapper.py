@@ -32,8 +32,8 @@ from cpslam.common.camera import Intrinsics
 from cpslam.common.field import (
     Decoders,
     FeatureCNN,
+    FieldSpec,
     NeuralPointMap,
-    RaySampler,
     camera_rays,
     patch_points,
     render_rays,
@@ -83,40 +83,36 @@ class Mapper:
     """Point insertion and feature/decoder optimisation.
 
     Args:
-        sampler: ray sampler.
+        spec: the field (ray sampler, patch size of new points, neighbours per sample, search
+            radius and backend, rays per rendering pass).
         lr_decoders, lr_features: Adam learning rates.
         feature_lr_decay, feature_lr_decay_steps: feature lr decay (reset every call).
         color_weight: weight of the colour L1 term.
-        patch_size: new points from the centre of every patch_size x patch_size block.
         add_points_depth_err: None = add where no point is within radius; a number = add where
             the rendered depth is off by more than this (m).
-        k, radius, backend, chunk: rendering (neighbours, search radius, search backend, rays
-            per pass).
     """
 
     def __init__(
         self,
-        sampler: RaySampler,
-        lr_decoders: float = 0.003,
-        lr_features: float = 0.005,
-        feature_lr_decay: float = 0.1,
-        feature_lr_decay_steps: int = 10000,
-        color_weight: float = 0.2,
-        patch_size: int = 4,
-        add_points_depth_err: float | None = None,
-        k: int = 8,
-        radius: float = 0.15,
-        backend: str = "auto",
-        chunk: int | None = None,
+        spec: FieldSpec,
+        *,
+        lr_decoders: float,
+        lr_features: float,
+        feature_lr_decay: float,
+        feature_lr_decay_steps: int,
+        color_weight: float,
+        add_points_depth_err: float | None,
     ) -> None:
-        self.sampler = sampler
+        self.spec = spec
+        self.sampler = spec.sampler()
         self.lr_decoders, self.lr_features = lr_decoders, lr_features
         self.feature_lr_decay = feature_lr_decay
         self.feature_lr_decay_steps = feature_lr_decay_steps
         self.color_weight = color_weight
-        self.patch_size = patch_size
+        self.patch_size = spec.patch_size
         self.add_points_depth_err = add_points_depth_err
-        self.k, self.radius, self.backend, self.chunk = k, radius, backend, chunk
+        self.k, self.radius = spec.k_neighbors, spec.radius
+        self.backend, self.chunk = spec.neighbour_backend, spec.chunk_rays
 
     # --------------------------------------------------------------------------- new points
 
@@ -166,7 +162,7 @@ class Mapper:
         v = cam[:, 1] / z * intrinsics.fy + intrinsics.cy
         rays_o, rays_d = camera_rays(intrinsics, T, u, v)
         out = render_rays(point_map, decoders, rays_o, rays_d, z.float(), self.sampler,
-                          generator, self.k, self.radius, backend=self.backend,
+                          generator, k=self.k, radius=self.radius, backend=self.backend,
                           chunk=self.chunk)
         return (out["depth"] - z.float()).abs() > self.add_points_depth_err
 
@@ -215,7 +211,7 @@ class Mapper:
             rays_o, rays_d, depth_obs, color_obs = _batch(views, share, generator, T_first)
             features = point_map.features.detach().index_copy(0, rows, active)
             out = render_rays(point_map, decoders, rays_o, rays_d, depth_obs, self.sampler,
-                              generator, self.k, self.radius, features=features,
+                              generator, k=self.k, radius=self.radius, features=features,
                               backend=self.backend, chunk=self.chunk)
             loss = (out["depth"] - depth_obs).abs().mean()
             if self.color_weight > 0:

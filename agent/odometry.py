@@ -39,10 +39,8 @@ from cpslam.common.field import Decoders, FeatureCNN, NeuralPointMap
 from cpslam.common.field.image_terms import ReferenceImage
 from cpslam.common.field.tracking import Tracker, TrackResult
 from cpslam.common.field_config import (
-    cnn_from_config,
-    decoders_from_config,
-    point_map_from_config,
-    sampler_from_config,
+    field_spec,
+    mapper_args_from_config,
     tracker_args_from_config,
 )
 
@@ -101,21 +99,22 @@ class Odometry:
         tracker: Tracker,
         mapper: Mapper,
         keyframes: KeyframeStore,
-        map_every: int = 10,
-        kf_every: int = 50,
-        iters_first: int = 3000,
-        iters: int = 200,
-        iters_after_fusion: int = 150,
-        n_pixels_first: int = 3136,
-        n_pixels: int = 3000,
-        covisible_keyframes: int = 5,
-        pose_lr: float = 0.0,
-        init: str = "zero_motion",
-        depth_min: float = 0.01,
-        depth_max: float = 10.0,
-        seed: int = 0,
-        agent_id: int = 0,
-        recovery: Recovery | None = None,
+        *,
+        map_every: int,
+        kf_every: int,
+        iters_first: int,
+        iters: int,
+        iters_after_fusion: int,
+        n_pixels_first: int,
+        n_pixels: int,
+        covisible_keyframes: int,
+        pose_lr: float,
+        init: str,
+        depth_min: float,
+        depth_max: float,
+        seed: int,
+        agent_id: int,
+        recovery: Recovery | None,
     ) -> None:
         if init not in ("zero_motion", "constant_velocity"):
             raise ValueError(f"Odometry: init must be zero_motion or constant_velocity, "
@@ -155,24 +154,16 @@ class Odometry:
     ) -> Odometry:
         """Everything from the config's field, tracking, mapping, keyframes, camera and run
         sections, on `device`."""
-        f, tr, mp = cfg.field, cfg.tracking, cfg.mapping
+        tr, mp = cfg.tracking, cfg.mapping
         seed = cfg.run.seed
-        chunk = f.chunk_rays
-        tracker = Tracker(intrinsics, sampler_from_config(f), **tracker_args_from_config(f, tr))
-        mapper = Mapper(
-            sampler_from_config(f), lr_decoders=mp.lr_decoders, lr_features=mp.lr_features,
-            feature_lr_decay=mp.feature_lr_decay, feature_lr_decay_steps=mp.feature_lr_decay_steps,
-            color_weight=mp.color_weight, patch_size=f.patch_size,
-            add_points_depth_err=mp.add_points_depth_err, k=f.k_neighbors, radius=f.radius,
-            backend=f.neighbour_backend, chunk=chunk,
-        )
+        spec = field_spec(cfg.field)
         return cls(
             intrinsics,
-            point_map_from_config(f, agent_id, device),
-            decoders_from_config(f, seed).to(device),
-            cnn_from_config(f, seed).to(device),
-            tracker,
-            mapper,
+            spec.point_map(agent_id, device),
+            spec.decoders(seed).to(device),
+            spec.cnn(seed).to(device),
+            Tracker(intrinsics, spec, **tracker_args_from_config(tr)),
+            Mapper(spec, **mapper_args_from_config(mp)),
             KeyframeStore(intrinsics, cfg.keyframes.image_downscale),
             map_every=mp.every, kf_every=cfg.keyframes.every, iters_first=mp.iters_first,
             iters=mp.iters, iters_after_fusion=mp.iters_after_fusion,

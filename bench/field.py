@@ -4,7 +4,7 @@
   (scipy cKDTree with 1 and all workers, torch hash grid on the CPU);
 - rendering a batch of 1500 rays (16 near + 4 uniform samples, K=8) from a box room whose
   map is the grid-filtered back-projection of one 320x240 depth image: forward and
-  forward+backward, with the paper's decoder widths and with small ones.
+  forward+backward, with the `gpu` preset's decoder widths and with small ones.
 
 Usage: python bench/field.py [--threads N] [--repeat R]
 """
@@ -12,6 +12,7 @@ Usage: python bench/field.py [--threads N] [--repeat R]
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import platform
@@ -23,24 +24,29 @@ import numpy as np
 import torch
 
 from cpslam.common.camera import Intrinsics
+from cpslam.common.config import load_config
 from cpslam.common.field import (
     Decoders,
     FeatureCNN,
     NeighbourIndex,
     NeuralPointMap,
-    RaySampler,
     camera_rays,
     patch_points,
     render_image,
     render_rays,
 )
+from cpslam.common.field_config import field_spec
 
 ROOM_LO = np.array([-3.0, -1.5, -3.0])
 ROOM_HI = np.array([3.0, 1.5, 3.0])
-WIDTHS = {
-    "paper": dict(c_hidden=256, c_out=256, g_hidden=256, u_hidden=128),
-    "small": dict(c_hidden=64, c_out=64, g_hidden=64, u_hidden=64),
+# The defaults' field (the paper's sampler and neighbours, the `gpu` preset's decoder widths)
+# and the same with small decoders.
+SPEC = field_spec(load_config("gpu", env={}).field)
+SPECS = {
+    "gpu": SPEC,
+    "small": dataclasses.replace(SPEC, c_hidden=64, g_hidden=64, u_hidden=64),
 }
+KR = {"k": SPEC.k_neighbors, "radius": SPEC.radius}
 
 
 def main() -> None:
@@ -92,17 +98,17 @@ def bench_render(repeat: int) -> dict[str, dict[str, float]]:
     v = torch.randint(0, intr.height, (1500,), generator=gen)
     rays_o, rays_d = camera_rays(intr, T_world_cam, u, v)
     depth_obs = torch.from_numpy(depth)[v, u]
-    sampler = RaySampler()
+    sampler = SPEC.sampler()
     out: dict[str, dict[str, float]] = {"scene": {"points": len(point_map)}}
-    for name, widths in WIDTHS.items():
-        dec = Decoders(**widths)
+    for name, spec in SPECS.items():
+        dec = spec.decoders(seed=0)
 
         def forward(dec: Decoders = dec) -> None:
             with torch.no_grad():
-                render_rays(point_map, dec, rays_o, rays_d, depth_obs, sampler, gen)
+                render_rays(point_map, dec, rays_o, rays_d, depth_obs, sampler, gen, **KR)
 
         def forward_backward(dec: Decoders = dec) -> None:
-            res = render_rays(point_map, dec, rays_o, rays_d, depth_obs, sampler, gen)
+            res = render_rays(point_map, dec, rays_o, rays_d, depth_obs, sampler, gen, **KR)
             ((res["depth"] - depth_obs).abs().mean() + res["color"].mean()).backward()
 
         dec.rows_evaluated = 0
@@ -131,13 +137,14 @@ def bench_map(repeat: int) -> dict[str, float]:
 
     intr = Intrinsics(fx=256.0, fy=256.0, cx=159.5, cy=119.5, width=320, height=240)
     point_map = _map_from_depth(intr, _box_depth(intr))
-    dec = Decoders(**WIDTHS["small"])
+    dec = SPECS["small"].decoders(seed=0)
     T_world_cam = torch.eye(4, dtype=torch.float64)
     return {
         "base_points": len(base),
         "add_5k_points_to_map": _median_ms(add, repeat),
         "render_image_320x240_small": _median_ms(
-            lambda: render_image(point_map, dec, intr, T_world_cam), max(1, repeat // 3)
+            lambda: render_image(point_map, dec, intr, T_world_cam, SPEC.sampler(perturb=False),
+                                 **KR), max(1, repeat // 3)
         ),
     }
 

@@ -49,7 +49,7 @@ def load_run_model(run: Path, agent_id: str = "0", device: str = "cpu") -> RunMo
 
     from cpslam.common.camera import Intrinsics
     from cpslam.common.config import load_config_file
-    from cpslam.common.field_config import decoders_from_config, point_map_from_config
+    from cpslam.common.field_config import field_spec
 
     agent_dir = run / f"agent_{agent_id}"
     config_path = run / "config.yaml"
@@ -65,9 +65,10 @@ def load_run_model(run: Path, agent_id: str = "0", device: str = "cpu") -> RunMo
         if key not in state:
             raise ValueError(f"{state_path}: missing {key!r}; not a cpslam agent state file")
     # The map's agent key is local to the agent process (always 0); the state sets it anyway.
-    point_map = point_map_from_config(cfg.field, 0, device)
+    spec = field_spec(cfg.field)
+    point_map = spec.point_map(0, device)
     point_map.load_state_dict(state["point_map"])
-    decoders = decoders_from_config(cfg.field, cfg.run.seed).to(device)
+    decoders = spec.decoders(cfg.run.seed).to(device)
     decoders.load_state_dict(state["decoders"])
     decoders.eval()
     return RunModel(cfg, point_map, decoders, Intrinsics.from_dict(state["intrinsics"]))
@@ -99,15 +100,15 @@ def render_views(
     import torch
 
     from cpslam.common.field import render_image
-    from cpslam.common.field_config import sampler_from_config
+    from cpslam.common.field_config import field_spec
 
     intr = intrinsics or model.intrinsics
     f = model.config.field
     # Bin centres, no jitter: renders are deterministic.
-    sampler = sampler_from_config(f, perturb=False)
+    sampler = field_spec(f).sampler(perturb=False)
     for T_world_cam in poses:
         T = torch.as_tensor(T_world_cam, dtype=torch.float64, device=model.point_map.device)
-        out = render_image(model.point_map, model.decoders, intr, T, sampler=sampler,
+        out = render_image(model.point_map, model.decoders, intr, T, sampler,
                            k=f.k_neighbors, radius=f.radius, chunk=chunk,
                            backend=f.neighbour_backend)
         rgb = (out["color"].clamp(0, 1) * 255 + 0.5).to(torch.uint8).cpu().numpy()

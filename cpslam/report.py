@@ -139,7 +139,7 @@ def fused_mesh(run: Path, max_views: int = 40, voxel_size: float = 0.03,
     from cpslam.common.camera import Intrinsics
     from cpslam.common.config import load_config_file
     from cpslam.common.field import NeuralPointMap
-    from cpslam.common.field_config import decoders_from_config
+    from cpslam.common.field_config import field_spec
     from cpslam.common.logs import progress
     from cpslam.common.mesh import tsdf_mesh, write_mesh
     from cpslam.common.render import STATE_FILE, RunModel, render_views
@@ -154,7 +154,7 @@ def fused_mesh(run: Path, max_views: int = 40, voxel_size: float = 0.03,
             raise FileNotFoundError(f"{path}: not found")
     cfg = load_config_file(run / "config.yaml")
     point_map = NeuralPointMap.load(run / "fused_map.pt")
-    decoders = decoders_from_config(cfg.field, cfg.run.seed)
+    decoders = field_spec(cfg.field).decoders(cfg.run.seed)
     decoders.load_state_dict(torch.load(decoder_path, map_location="cpu", weights_only=True))
     decoders.eval()
     state = next((run / f"agent_{m}" / STATE_FILE for m in members

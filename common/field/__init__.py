@@ -12,10 +12,12 @@ from cpslam.common.field.points import NeuralPointMap
 from cpslam.common.field.renderer import camera_rays, render_image, render_rays, render_samples
 from cpslam.common.field.sampler import RaySampler
 from cpslam.common.field.search import NeighbourIndex
+from cpslam.common.field.spec import FieldSpec
 
 __all__ = [
     "Decoders",
     "FeatureCNN",
+    "FieldSpec",
     "NeighbourIndex",
     "NeuralPointMap",
     "RaySampler",

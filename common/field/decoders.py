@@ -19,38 +19,38 @@ _DIST_EPS = 1e-6
 
 
 class Decoders(nn.Module):
-    """C, G and U with explicit widths; defaults are the `gpu` preset's (the paper's but for C's
-    output, 128 in the paper).
+    """C, G and U with explicit widths (build them with `FieldSpec.decoders`).
 
     Args:
         feature_dim: point feature width F (32 in the paper).
         pe_feature: positional-encoding order on features (1 in the paper).
         pe_offset: positional-encoding order on offsets x - p_k (7 in the paper).
-        c_hidden: width of C's hidden layers (256).
-        c_out: width of C's output, the per-neighbour feature (256; 128 in the paper).
-        g_hidden: width of G's hidden layers (256).
-        u_hidden: width of U's hidden layers (128).
-        u_layers: number of hidden layers of U (2).
+        c_hidden: width of C's hidden layers (256 in the paper).
+        c_out: width of C's output, the per-neighbour feature (128 in the paper).
+        g_hidden: width of G's hidden layers (256 in the paper).
+        u_hidden: width of U's hidden layers (128 in the paper).
+        u_layers: number of hidden layers of U (2 in the paper).
         seed: seed of the weight initialisation (the global RNG is left untouched).
         c_layers: number of hidden layers of C (1 in the paper).
         g_layers: number of hidden layers of G (1 in the paper).
-        leaky_slope: negative slope of every LeakyReLU (torch's 0.01 by default).
+        leaky_slope: negative slope of every LeakyReLU (0.01 in the paper, torch's default).
     """
 
     def __init__(
         self,
-        feature_dim: int = 32,
-        pe_feature: int = 1,
-        pe_offset: int = 7,
-        c_hidden: int = 256,
-        c_out: int = 256,
-        g_hidden: int = 256,
-        u_hidden: int = 128,
-        u_layers: int = 2,
-        seed: int = 0,
-        c_layers: int = 1,
-        g_layers: int = 1,
-        leaky_slope: float = 0.01,
+        *,
+        feature_dim: int,
+        pe_feature: int,
+        pe_offset: int,
+        c_hidden: int,
+        c_out: int,
+        g_hidden: int,
+        u_hidden: int,
+        u_layers: int,
+        seed: int,
+        c_layers: int,
+        g_layers: int,
+        leaky_slope: float,
     ) -> None:
         super().__init__()
         if min(u_layers, c_layers, g_layers) < 1:
@@ -163,7 +163,7 @@ class FeatureCNN(nn.Module):
     of the points themselves.
     """
 
-    def __init__(self, feature_dim: int = 32, kernel_size: int = 3, seed: int = 0) -> None:
+    def __init__(self, feature_dim: int, kernel_size: int = 3, seed: int = 0) -> None:
         super().__init__()
         if kernel_size % 2 != 1:
             raise ValueError(f"FeatureCNN: kernel_size must be odd, got {kernel_size}")

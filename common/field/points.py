@@ -41,7 +41,7 @@ class NeuralPointMap:
 
     Args:
         feature_dim: width F of the point features.
-        cell_size: grid-filter cell rho in metres (0.14 in the paper).
+        cell_size: grid-filter cell rho in metres.
         default_agent: agent id used where a method's agent_id is left out.
         device: device of all tensors.
 
@@ -53,8 +53,8 @@ class NeuralPointMap:
 
     def __init__(
         self,
-        feature_dim: int = 32,
-        cell_size: float = 0.14,
+        feature_dim: int,
+        cell_size: float,
         default_agent: int = 0,
         device: str | torch.device = "cpu",
     ) -> None:
@@ -364,7 +364,8 @@ class NeuralPointMap:
         state = torch.load(path, map_location="cpu", weights_only=True)
         if not isinstance(state, dict):
             raise ValueError(f"{path}: not a neural point map file")
-        out = cls(device=device)
+        # The state holds the feature width and cell; these placeholders are replaced.
+        out = cls(feature_dim=1, cell_size=1.0, device=device)
         out.load_state_dict(state, source=str(path))
         return out
 

@@ -40,8 +40,9 @@ def render_rays(
     depth_obs: torch.Tensor,
     sampler: RaySampler,
     generator: torch.Generator | None = None,
-    k: int = 8,
-    radius: float = 0.15,
+    *,
+    k: int,
+    radius: float,
     features: torch.Tensor | None = None,
     depth_range: tuple[float, float] | None = None,
     backend: str = "auto",
@@ -76,8 +77,8 @@ def render_samples(
     rays_o: torch.Tensor,
     rays_d: torch.Tensor,
     t: torch.Tensor,
-    k: int = 8,
-    radius: float = 0.15,
+    k: int,
+    radius: float,
     features: torch.Tensor | None = None,
     backend: str = "auto",
     chunk: int | None = None,
@@ -148,10 +149,11 @@ def render_image(
     decoders: Decoders,
     intrinsics: Intrinsics,
     T_world_cam: torch.Tensor,
+    sampler: RaySampler,
+    *,
+    k: int,
+    radius: float,
     step: int = 1,
-    sampler: RaySampler | None = None,
-    k: int = 8,
-    radius: float = 0.15,
     min_acc: float = 0.5,
     chunk: int = 2048,
     backend: str = "auto",
@@ -159,9 +161,9 @@ def render_image(
     """Render a full image (every `step`-th pixel) without observed depth.
 
     See the module docstring for the three passes. Rays whose window opacity stays below
-    `min_acc` are left empty (depth 0, colour 0). `sampler` is the final pass's (bin centres,
-    paper numbers by default). `chunk` rays go through each pass at once: about 2k keeps the
-    per-pair tensors in cache (8k was twice as slow on CPU).
+    `min_acc` are left empty (depth 0, colour 0). `sampler` is the final pass's (one with
+    perturb=False puts the samples at bin centres). `chunk` rays go through each pass at once:
+    about 2k keeps the per-pair tensors in cache (8k was twice as slow on CPU).
     Returns depth [h, w], color [h, w, 3], var [h, w], acc [h, w] with h = ceil(H / step).
     """
     device = point_map.device
@@ -193,7 +195,7 @@ def render_image(
         if len(hit) > 0:
             guide = window["depth"][keep] / window["acc"][keep]
             fine = render_rays(point_map, decoders, rays_o[hit], rays_d[hit], guide,
-                               sampler or RaySampler(perturb=False), k=k, radius=radius,
+                               sampler, k=k, radius=radius,
                                backend=backend, chunk=chunk)
             for key in out:
                 out[key][hit] = fine[key]

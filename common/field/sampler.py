@@ -14,40 +14,34 @@ class RaySampler:
     """Sample depths t along rays (t is camera z-depth when ray directions have z = 1).
 
     Args:
-        n_near: samples in [(1 - near_band) D, (1 + near_band) D] around the observed depth D.
-        n_uniform: samples in [(1 - near_band) D_min, (1 + near_band) D_max], D_min/D_max the
-            batch's smallest/largest valid depth.
-        near_band: relative half-width of both ranges (0.05 in the paper).
-        min_depth: lower end of the range for pixels without depth (D_l = 0.001 m).
+        n_near: samples in [near_lo D, near_hi D] around the observed depth D.
+        n_uniform: samples in [near_lo D_min, far_hi D_max], D_min/D_max the batch's
+            smallest/largest valid depth.
+        near_lo, near_hi, far_hi: the band's factors (0.95, 1.05, 1.05 in the paper).
+        min_depth: lower end of the range for pixels without depth (D_l, 0.001 m in the paper).
         perturb: draw jittered positions (training); False puts samples at bin centres.
-        near_lo, near_hi, far_hi: the factors of an asymmetric band (near samples in
-            [near_lo D, near_hi D], uniform ones in [near_lo D_min, far_hi D_max]); each
-            left out is 1 -/+ near_band.
     """
 
     def __init__(
         self,
-        n_near: int = 16,
-        n_uniform: int = 4,
-        near_band: float = 0.05,
-        min_depth: float = 0.001,
+        n_near: int,
+        n_uniform: int,
+        *,
+        near_lo: float,
+        near_hi: float,
+        far_hi: float,
+        min_depth: float,
         perturb: bool = True,
-        near_lo: float | None = None,
-        near_hi: float | None = None,
-        far_hi: float | None = None,
     ) -> None:
         if n_near < 0 or n_uniform < 0 or n_near + n_uniform < 1:
             raise ValueError(f"RaySampler: need n_near, n_uniform >= 0 with a positive sum, "
                              f"got {n_near}, {n_uniform}")
-        self.near_lo = 1.0 - near_band if near_lo is None else float(near_lo)
-        self.near_hi = 1.0 + near_band if near_hi is None else float(near_hi)
-        self.far_hi = self.near_hi if far_hi is None else float(far_hi)
+        self.near_lo, self.near_hi, self.far_hi = float(near_lo), float(near_hi), float(far_hi)
         if not 0.0 < self.near_lo < self.near_hi or self.far_hi < self.near_lo:
             raise ValueError(f"RaySampler: need 0 < near_lo < near_hi and far_hi >= near_lo, got "
                              f"{self.near_lo}, {self.near_hi}, {self.far_hi}")
         self.n_near = n_near
         self.n_uniform = n_uniform
-        self.near_band = near_band
         self.min_depth = min_depth
         self.perturb = perturb
 

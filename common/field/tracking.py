@@ -50,7 +50,7 @@ from cpslam.common.field.image_terms import ReferenceImage
 from cpslam.common.field.points import NeuralPointMap
 from cpslam.common.field.pose_lm import LMSettings, solve_pose_lm
 from cpslam.common.field.renderer import camera_rays, render_samples
-from cpslam.common.field.sampler import RaySampler
+from cpslam.common.field.spec import FieldSpec
 from cpslam.common.geometry_torch import torch_se3_exp
 
 if TYPE_CHECKING:
@@ -94,7 +94,8 @@ class Tracker:
 
     Args:
         intrinsics: of the processed frames.
-        sampler: ray sampler (the paper's near/uniform samples around the observed depth).
+        spec: the field (ray sampler, neighbours per sample, radius, search backend, rays per
+            rendering pass).
         iters: optimisation steps per frame.
         n_pixels: pixels with valid depth drawn per frame (M2).
         lr: Adam learning rate of the se(3) increment.
@@ -104,9 +105,6 @@ class Tracker:
         err_lo, err_hi, var_factor: the outlier mask (see the module docstring).
         keep_best: return the lowest-loss pose instead of the last one.
         early_stop_tol: stop when the relative loss change of a step is below this (0 = never).
-        k, radius: neighbours per sample and search radius.
-        backend: neighbour search backend.
-        chunk: rays per rendering pass (None = all).
         reuse_neighbours: metres the farthest sample may move before the neighbour search is
             redone (0 = search at every step).
         pixel_sampling: "uniform" (the paper: independent draws among the valid pixels) or
@@ -122,28 +120,25 @@ class Tracker:
     def __init__(
         self,
         intrinsics: Intrinsics,
-        sampler: RaySampler,
-        iters: int = 100,
-        n_pixels: int = 1500,
-        lr: float = 0.0015,
-        lr_end_factor: float = 1.0,
-        color_weight: float = 0.0,
-        err_lo: float = 0.1,
-        err_hi: float = 10.0,
-        var_factor: float = 2.0,
-        keep_best: bool = True,
-        early_stop_tol: float = 0.0,
-        k: int = 8,
-        radius: float = 0.15,
-        backend: str = "auto",
-        chunk: int | None = None,
+        spec: FieldSpec,
+        *,
+        iters: int,
+        n_pixels: int,
+        lr: float,
+        lr_end_factor: float,
+        color_weight: float,
+        err_lo: float,
+        err_hi: float,
+        var_factor: float,
+        keep_best: bool,
+        early_stop_tol: float,
+        pixel_sampling: str,
+        method: str,
+        prior_sigma_t: float,
+        prior_sigma_r: float,
+        reference_weight: float,
+        reference_pixels: int,
         reuse_neighbours: float = 0.01,
-        pixel_sampling: str = "uniform",
-        method: str = "adam",
-        prior_sigma_t: float = 0.05,
-        prior_sigma_r: float = 0.05,
-        reference_weight: float = 0.0,
-        reference_pixels: int = 2000,
     ) -> None:
         if iters < 1 or n_pixels < 1 or lr <= 0:
             raise ValueError(f"Tracker: need iters >= 1, n_pixels >= 1, lr > 0; got {iters}, "
@@ -166,7 +161,8 @@ class Tracker:
         self.prior_sigma_t, self.prior_sigma_r = prior_sigma_t, prior_sigma_r
         self.pixel_sampling = pixel_sampling
         self.intrinsics = intrinsics
-        self.sampler = sampler
+        self.spec = spec
+        self.sampler = spec.sampler()
         self.iters = iters
         self.n_pixels = n_pixels
         self.lr = lr
@@ -175,7 +171,8 @@ class Tracker:
         self.err_lo, self.err_hi, self.var_factor = err_lo, err_hi, var_factor
         self.keep_best = keep_best
         self.early_stop_tol = early_stop_tol
-        self.k, self.radius, self.backend, self.chunk = k, radius, backend, chunk
+        self.k, self.radius = spec.k_neighbors, spec.radius
+        self.backend, self.chunk = spec.neighbour_backend, spec.chunk_rays
         self.reuse_neighbours = reuse_neighbours
 
     def track(

@@ -87,7 +87,7 @@ def test_keyframe_pose_change_moves_only_its_points() -> None:
 
 
 def test_unknown_keyframe_and_bad_input_raise() -> None:
-    m = NeuralPointMap(feature_dim=2)
+    m = NeuralPointMap(feature_dim=2, cell_size=0.14)
     with pytest.raises(KeyError, match="keyframe 5"):
         m.add_points(torch.zeros(1, 3), 5, torch.zeros(1, 2), torch.zeros(1, 3, dtype=torch.uint8))
     m.set_keyframe_poses(0, np.eye(4))

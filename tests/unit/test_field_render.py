@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from spec_helpers import spec
 
 from cpslam.common.camera import Intrinsics
 from cpslam.common.field import (
     Decoders,
     FeatureCNN,
     NeuralPointMap,
-    RaySampler,
     camera_rays,
     render_image,
     render_rays,
@@ -20,10 +20,12 @@ from cpslam.common.geometry_torch import torch_se3_exp
 
 INTR = Intrinsics(fx=40.0, fy=40.0, cx=23.5, cy=17.5, width=48, height=36)
 PLANE_Z = 2.0
+SPEC = spec()  # the paper's sampler and neighbours (K = 8 within 0.15 m)
+KR = {"k": SPEC.k_neighbors, "radius": SPEC.radius}
 
 
 def _small_decoders(seed: int = 0) -> Decoders:
-    return Decoders(c_hidden=32, c_out=32, g_hidden=32, u_hidden=32, seed=seed)
+    return spec(c_hidden=32, g_hidden=32, u_hidden=32).decoders(seed)
 
 
 def _plane_map(spacing: float = 0.1, half: float = 1.6) -> NeuralPointMap:
@@ -46,7 +48,7 @@ def _pixels(n: int, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def test_sampler_ranges_and_no_depth_rays() -> None:
-    sampler = RaySampler(n_near=16, n_uniform=4)
+    sampler = SPEC.sampler()
     depth = torch.tensor([1.0, 3.0, 0.0])
     t = sampler(depth, torch.Generator().manual_seed(0))
     assert t.shape == (3, 20)
@@ -86,10 +88,11 @@ def test_samples_without_neighbours_cost_nothing() -> None:
     u, v = _pixels(200, gen)
     rays_o, rays_d = camera_rays(INTR, torch.eye(4), u, v)
     depth = torch.full((200,), PLANE_Z)
-    t = RaySampler()(depth, torch.Generator().manual_seed(5))
+    t = SPEC.sampler()(depth, torch.Generator().manual_seed(5))
     x = (rays_o[:, None] + t[..., None] * rays_d[:, None]).reshape(-1, 3)
     nbr = m.neighbour_index().query(x, 8, 0.15)
-    out = render_rays(m, dec, rays_o, rays_d, depth, RaySampler(), torch.Generator().manual_seed(5))
+    out = render_rays(m, dec, rays_o, rays_d, depth, SPEC.sampler(),
+                      torch.Generator().manual_seed(5), **KR)
     assert dec.rows_evaluated == int((nbr >= 0).sum())
     has = (nbr >= 0).any(1)
     assert dec.samples_decoded == int(has.sum()) == int(out["n_valid_samples"])
@@ -99,7 +102,7 @@ def test_samples_without_neighbours_cost_nothing() -> None:
     assert bool((out["weights"][missed] == 0).all()) and bool((out["depth"][missed] == 0).all())
     # A batch where no sample has a neighbour never reaches the MLPs.
     dec.rows_evaluated = 0
-    far = render_rays(m, dec, rays_o + 100.0, rays_d, depth, RaySampler(), gen)
+    far = render_rays(m, dec, rays_o + 100.0, rays_d, depth, SPEC.sampler(), gen, **KR)
     assert dec.rows_evaluated == 0 and float(far["acc"].abs().sum()) == 0.0
 
 
@@ -111,7 +114,8 @@ def test_gradients_reach_features_decoders_and_pose() -> None:
     gen = torch.Generator().manual_seed(0)
     u, v = _pixels(300, gen)
     rays_o, rays_d = camera_rays(INTR, T_world_cam, u, v)
-    out = render_rays(m, dec, rays_o, rays_d, torch.full((300,), PLANE_Z - 0.05), RaySampler(), gen)
+    out = render_rays(m, dec, rays_o, rays_d, torch.full((300,), PLANE_Z - 0.05), SPEC.sampler(),
+                      gen, **KR)
     loss = (out["depth"] - PLANE_Z).abs().mean() + out["color"].mean()
     loss.backward()
     for name, grad in [("features", m.features.grad), ("pose", xi.grad)] + [
@@ -131,7 +135,7 @@ def test_same_seed_same_output() -> None:
         u, v = _pixels(100, gen)
         rays_o, rays_d = camera_rays(INTR, torch.eye(4), u, v)
         outs.append(render_rays(m, dec, rays_o, rays_d, torch.full((100,), PLANE_Z),
-                                RaySampler(), gen, chunk=37))
+                                SPEC.sampler(), gen, chunk=37, **KR))
     for key in ("depth", "color", "var", "t"):
         assert torch.equal(outs[0][key], outs[1][key]), key
     other = _small_decoders(seed=4)
@@ -153,18 +157,19 @@ def test_plane_is_rendered_at_its_depth_after_fitting() -> None:
     opt = torch.optim.Adam(
         [{"params": dec.parameters(), "lr": 3e-3}, {"params": [m.features], "lr": 5e-3}]
     )
-    sampler = RaySampler()
+    sampler = SPEC.sampler()
     gen = torch.Generator().manual_seed(0)
     for _ in range(100):
         u, v = _pixels(128, gen)
         rays_o, rays_d = camera_rays(INTR, torch.eye(4), u, v)
-        out = render_rays(m, dec, rays_o, rays_d, torch.full((128,), PLANE_Z), sampler, gen)
+        out = render_rays(m, dec, rays_o, rays_d, torch.full((128,), PLANE_Z), sampler, gen, **KR)
         loss = (out["depth"] - PLANE_Z).abs().mean()
         opt.zero_grad()
         loss.backward()
         opt.step()
     # Rendered without any depth guidance (coarse-to-fine), every other pixel.
-    image = render_image(m, dec, INTR, torch.eye(4, dtype=torch.float64), step=2)
+    image = render_image(m, dec, INTR, torch.eye(4, dtype=torch.float64),
+                         SPEC.sampler(perturb=False), step=2, **KR)
     err = (image["depth"] - PLANE_Z).abs()
     assert image["depth"].shape == (18, 24)
     assert float((err < 0.02).float().mean()) > 0.9
@@ -181,8 +186,9 @@ def test_features_override_optimises_a_subset() -> None:
     u, v = _pixels(200, gen)
     rays_o, rays_d = camera_rays(INTR, torch.eye(4), u, v)
     depth = torch.full((200,), PLANE_Z)
-    out = render_rays(m, dec, rays_o, rays_d, depth, RaySampler(perturb=False), features=full)
-    ref = render_rays(m, dec, rays_o, rays_d, depth, RaySampler(perturb=False))
+    out = render_rays(m, dec, rays_o, rays_d, depth, SPEC.sampler(perturb=False), features=full,
+                      **KR)
+    ref = render_rays(m, dec, rays_o, rays_d, depth, SPEC.sampler(perturb=False), **KR)
     torch.testing.assert_close(out["depth"], ref["depth"])
     out["depth"].sum().backward()
     assert active.grad is not None and float(active.grad.abs().sum()) > 0
@@ -203,11 +209,13 @@ def test_render_image_without_any_kept_ray_is_empty(case: str) -> None:
         m.add_points(torch.tensor([[0.2, 0.2, PLANE_Z]]), 0, torch.zeros(1, 32),
                      torch.full((1, 3), 200, dtype=torch.uint8))
         step = 8
-        image = render_image(m, dec, INTR, eye, step=step, radius=0.01)
+        image = render_image(m, dec, INTR, eye, SPEC.sampler(perturb=False), step=step,
+                             k=SPEC.k_neighbors, radius=0.01)
     else:
         # Rays hit the plane, but no window reaches an opacity above 1.
         step = 4
-        image = render_image(_plane_map(), dec, INTR, eye, step=step, min_acc=1.5)
+        image = render_image(_plane_map(), dec, INTR, eye, SPEC.sampler(perturb=False), step=step,
+                             min_acc=1.5, **KR)
     h, w = -(-INTR.height // step), -(-INTR.width // step)
     assert image["depth"].shape == (h, w) and image["color"].shape == (h, w, 3)
     for key in ("depth", "color", "var", "acc"):

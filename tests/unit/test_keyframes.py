@@ -91,4 +91,4 @@ def test_state_dict_round_trip_with_weights_only() -> None:
     for x, y in zip(store.full_rgbd(0), other.full_rgbd(0), strict=True):
         np.testing.assert_array_equal(x, y)
     with pytest.raises(ValueError, match="made at"):
-        KeyframeStore(INTR.scaled(0.5)).load_state_dict(state)
+        KeyframeStore(INTR.scaled(0.5), downscale=2).load_state_dict(state)

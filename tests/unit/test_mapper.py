@@ -6,10 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from spec_helpers import mapper_args, spec
 
 from cpslam.agent.mapper import Mapper, View
 from cpslam.common.camera import Intrinsics
-from cpslam.common.field import Decoders, FeatureCNN, NeuralPointMap, RaySampler
+from cpslam.common.field import Decoders, FeatureCNN, NeuralPointMap
 from cpslam.common.field.grid import grid_winners
 from cpslam.common.geometry import se3_exp
 
@@ -24,13 +25,14 @@ def _wall_frame(depth_m: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
     return rgb, np.full((60, 80), depth_m, dtype=np.float32)
 
 
+SPEC = spec(feature_dim=8, grid_size=CELL, c_hidden=16, g_hidden=16, u_hidden=16, u_layers=1,
+            n_near=4, n_uniform=2, patch_size=4, k_neighbors=4, radius=0.12)
+
+
 def _setup() -> tuple[NeuralPointMap, Decoders, FeatureCNN, Mapper]:
-    point_map = NeuralPointMap(feature_dim=8, cell_size=CELL)
+    point_map = SPEC.point_map(0, "cpu")
     point_map.set_keyframe_poses(0, np.eye(4))
-    decoders = Decoders(feature_dim=8, c_hidden=16, c_out=16, g_hidden=16, u_hidden=16,
-                        u_layers=1)
-    mapper = Mapper(RaySampler(n_near=4, n_uniform=2), patch_size=4, k=4, radius=0.12)
-    return point_map, decoders, FeatureCNN(8), mapper
+    return point_map, SPEC.decoders(0), SPEC.cnn(0), Mapper(SPEC, **mapper_args())
 
 
 def _view(rgb: np.ndarray, depth: np.ndarray, T: np.ndarray) -> View:

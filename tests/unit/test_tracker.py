@@ -8,13 +8,16 @@ import copy
 import numpy as np
 import pytest
 import torch
+from spec_helpers import mapper_args, spec, tracker_args
 
 from cpslam.agent.mapper import Mapper, View
 from cpslam.common.camera import Intrinsics
-from cpslam.common.field import Decoders, FeatureCNN, NeuralPointMap, RaySampler
 from cpslam.common.field.tracking import Tracker, outlier_mask, sample_pixels
 from cpslam.common.geometry import se3_exp
 
+# The scene's own small field: 16-d features on a 10 cm grid, 6 neighbours within 15 cm.
+SPEC = spec(feature_dim=16, grid_size=0.1, c_hidden=32, g_hidden=32, u_hidden=32, u_layers=1,
+            n_near=8, n_uniform=2, patch_size=2, k_neighbors=6, radius=0.15)
 BOX_LO = np.array([-1.5, -1.2, -1.0])
 BOX_HI = np.array([1.5, 1.2, 2.0])
 
@@ -55,13 +58,11 @@ def fitted() -> dict:
     torch.set_num_threads(1)
     intr = Intrinsics(fx=64.0, fy=64.0, cx=39.5, cy=29.5, width=80, height=60)
     poses = [_look_at_corner(np.array(o)) for o in ((0, 0, 0), (0.15, 0, -0.1), (-0.1, 0.1, 0))]
-    point_map = NeuralPointMap(feature_dim=16, cell_size=0.1)
+    point_map = SPEC.point_map(0, "cpu")
     point_map.set_keyframe_poses(0, np.eye(4))
-    decoders = Decoders(feature_dim=16, c_hidden=32, c_out=32, g_hidden=32, u_hidden=32,
-                        u_layers=1, seed=0)
-    sampler = RaySampler(n_near=8, n_uniform=2)
-    mapper = Mapper(sampler, patch_size=2, k=6, radius=0.15, color_weight=0.2)
-    cnn = FeatureCNN(16, seed=0)
+    decoders = SPEC.decoders(0)
+    mapper = Mapper(SPEC, **mapper_args())
+    cnn = SPEC.cnn(0)
     views = []
     for T in poses:
         rgb, depth = _box_view(T, intr)
@@ -71,14 +72,13 @@ def fitted() -> dict:
     torch.set_num_threads(before)
     T_true = _look_at_corner(np.array([0.05, 0.03, -0.05]))
     rgb, depth = _box_view(T_true, intr)
-    return {"map": point_map, "decoders": decoders, "intr": intr, "sampler": sampler,
+    return {"map": point_map, "decoders": decoders, "intr": intr,
             "rgb": rgb, "depth": depth, "T_true": T_true, "views": views}
 
 
 def _tracker(fitted: dict, **kwargs) -> Tracker:
-    args = {"iters": 60, "n_pixels": 500, "lr": 0.003, "k": 6, "radius": 0.15}
-    args.update(kwargs)
-    return Tracker(fitted["intr"], fitted["sampler"], **args)
+    args = tracker_args(**{"iters": 60, "n_pixels": 500, "lr": 0.003, **kwargs})
+    return Tracker(fitted["intr"], SPEC, **args)
 
 
 def _errors(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
@@ -122,7 +122,7 @@ def test_mapping_with_pose_lr_refines_the_current_frame(fitted: dict) -> None:
     T_true = fitted["T_true"]
     axis = np.array([1.0, -2.0, 0.5]) / np.linalg.norm([1.0, -2.0, 0.5])
     T_off = T_true @ se3_exp(np.concatenate(([0.006, 0.005, -0.006], np.radians(1.0) * axis)))
-    mapper = Mapper(fitted["sampler"], patch_size=2, k=6, radius=0.15, color_weight=0.2)
+    mapper = Mapper(SPEC, **mapper_args())
     view = View(torch.from_numpy(fitted["rgb"]).float() / 255,
                 torch.from_numpy(fitted["depth"]), T_off, fitted["intr"])
     results = {}
@@ -221,16 +221,16 @@ def test_stratified_pixels_cover_the_view() -> None:
                for a, b in (sample_pixels(depth, 48, gen) for _ in range(20))]
     assert max(len(c) for c in uniform) < 36  # independent draws leave holes
     with pytest.raises(ValueError, match="pixel_sampling"):
-        Tracker(Intrinsics(64.0, 64.0, 39.5, 29.5, 80, 60), RaySampler(), pixel_sampling="grid")
+        Tracker(Intrinsics(64.0, 64.0, 39.5, 29.5, 80, 60), SPEC,
+                **tracker_args(pixel_sampling="grid"))
 
 
 # ------------------------------------------------------------------------ Levenberg-Marquardt
 
 
 def _lm(scene: dict, **kwargs) -> Tracker:
-    args = {"iters": 20, "n_pixels": 500, "k": 6, "radius": 0.15, "method": "lm"}
-    args.update(kwargs)
-    return Tracker(scene["intr"], scene["sampler"], **args)
+    args = tracker_args(**{"iters": 20, "n_pixels": 500, "method": "lm", **kwargs})
+    return Tracker(scene["intr"], SPEC, **args)
 
 
 def test_lm_recovers_2cm_2deg_perturbation_and_stops(fitted: dict) -> None:

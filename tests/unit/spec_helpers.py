@@ -1,0 +1,30 @@
+"""Field specs for unit tests: a preset's `field` section with a test's own sizes."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from functools import cache
+
+from cpslam.common.config import load_config
+from cpslam.common.field import FieldSpec
+from cpslam.common.field_config import field_spec, mapper_args_from_config, tracker_args_from_config
+
+
+@cache
+def _preset_spec(preset: str) -> FieldSpec:
+    return field_spec(load_config(preset, env={}).field)
+
+
+def spec(preset: str = "gpu", **changes: object) -> FieldSpec:
+    """The preset's field spec (default `gpu`: the schema defaults) with `changes`."""
+    return replace(_preset_spec(preset), **changes)
+
+
+def tracker_args(preset: str = "gpu", **changes: object) -> dict:
+    """`Tracker` keywords from the preset's `tracking` section, with `changes`."""
+    return {**tracker_args_from_config(load_config(preset, env={}).tracking), **changes}
+
+
+def mapper_args(preset: str = "gpu", **changes: object) -> dict:
+    """`Mapper` keywords from the preset's `mapping` section, with `changes`."""
+    return {**mapper_args_from_config(load_config(preset, env={}).mapping), **changes}
