@@ -35,6 +35,7 @@ only when that fails. open3d is imported inside the functions: importing this mo
 from __future__ import annotations
 
 import logging
+import math
 import time
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Protocol
@@ -140,14 +141,16 @@ class RegistrationParams:
 
     @classmethod
     def from_config(cls, cfg: LoopConfig, seed: int = 0) -> RegistrationParams:
-        """Settings from the ``loop`` config section (the other fields keep their defaults)."""
-        return cls(
-            voxel_size=cfg.icp_voxel_size,
-            max_distance=cfg.icp_max_distance,
-            min_overlap=cfg.verify_min_overlap,
-            max_residual=cfg.verify_max_residual,
-            seed=seed,
-        )
+        """Settings from the ``loop`` config section (the other fields keep their defaults).
+        With ``loop.verify`` off (the paper) no check rejects a pose: only a failed estimate
+        does."""
+        checks: dict[str, float] = dict(min_overlap=cfg.verify_min_overlap,
+                                        max_residual=cfg.verify_max_residual)
+        if not cfg.verify:
+            checks = dict(min_overlap=0.0, max_residual=math.inf, min_color_consistency=0.0,
+                          max_free_space_conflict=1.0)
+        return cls(voxel_size=cfg.icp_voxel_size, max_distance=cfg.icp_max_distance, seed=seed,
+                   **checks)
 
 
 @dataclass

@@ -47,7 +47,7 @@ if TYPE_CHECKING:
         PoseGraphConfig,
         RefinementConfig,
     )
-    from cpslam.common.field import Decoders
+    from cpslam.common.field import Decoders, FieldSpec
     from cpslam.server.federation import FederatedRound
 
 __all__ = ["Backend", "LoopRecord", "Outgoing"]
@@ -69,14 +69,14 @@ class Backend:
 
     Args:
         loop, federation, pose_graph, refinement: the config sections.
-        feature_dim, cell_size, k, radius: the neural field's point width, grid cell (m),
-            neighbours and radius (m).
         fetch_image: ``(agent_id, kf_id) -> KeyframeImage | None`` (a Zenoh get in the daemon).
+        spec: the neural field (point width, grid cell, rendering of the fine-tunes).
         now: monotonic clock (s).
         refine_pose, database, register, retry_after_s: the loop pipeline's (`LoopPipeline`;
             `from_config` makes `refine_pose` a `PoseRefiner` unless ``loop.refine`` is false).
-        decoders_factory, sampler, finetune_lr, finetune_views, seed: the decoder fine-tunes'
-            (`Federator`); finetune_lr_features: point features' rate in the final one.
+        decoders_factory, finetune_lr, color_weight, seed: the decoder fine-tunes' (`Federator`;
+            no factory, no fine-tune); finetune_lr_features: point features' rate in the
+            final one.
         share_every_s: how often merged groups get the other members' new points.
         verify_budget_s: a step stops verifying candidates after this many (wall-clock)
             seconds and leaves the rest for the next step, so a daemon stays responsive (acks,
@@ -91,21 +91,18 @@ class Backend:
         pose_graph: PoseGraphConfig,
         refinement: RefinementConfig,
         fetch_image: Callable[[str, int], KeyframeImage | None],
-        feature_dim: int = 32,
-        cell_size: float = 0.14,
-        k: int = 8,
-        radius: float = 0.15,
+        spec: FieldSpec,
+        *,
+        finetune_lr: float,
+        finetune_lr_features: float,
+        color_weight: float,
+        seed: int,
+        decoders_factory: Callable[[], Decoders] | None = None,
         now: Callable[[], float] = time.monotonic,
         refine_pose: Callable[..., Any] | None = None,
         database: LoopDatabase | None = None,
         register: Callable[[KeyframeImage, KeyframeImage], Any] | None = None,
-        decoders_factory: Callable[[], Decoders] | None = None,
-        sampler: Any = None,
-        finetune_lr: float = 0.003,
-        finetune_lr_features: float = 0.005,
-        finetune_views: int = 8,
         share_every_s: float = 10.0,
-        seed: int = 0,
         verify_budget_s: float | None = None,
         retry_after_s: float = 5.0,
     ) -> None:
@@ -113,12 +110,13 @@ class Backend:
         self.loop_cfg, self.fed_cfg = loop, federation
         self.pg_cfg, self.refine_cfg = pose_graph, refinement
         self.now = now
-        self.feature_dim, self.cell_size, self.k, self.radius = feature_dim, cell_size, k, radius
+        self.spec = spec
+        self.feature_dim, self.cell_size = spec.feature_dim, spec.grid_size
         self.finetune_lr_features = finetune_lr_features
         shapes = None
         if decoders_factory is not None:
             shapes = {n: tuple(t.shape) for n, t in decoders_factory().state_dict().items()}
-        self.registry = Registry(feature_dim, shapes)
+        self.registry = Registry(spec.feature_dim, shapes)
         self.groups = Groups()
         self.corrected: dict[tuple[str, int], np.ndarray] = {}
         self.merges: list[dict] = []
@@ -128,27 +126,28 @@ class Backend:
                                      register, seed, retry_after_s)
         self.federator = Federator(
             federation, self.registry, self.groups, self.pipeline.image, self.kf_poses,
-            self.member_maps, now, self.t_start, decoders_factory, sampler, feature_dim,
-            cell_size, k, radius, finetune_lr, finetune_views, seed)
-        self.sharing = MemberUpdates(self.registry, self.kf_poses, cell_size, share_every_s, now)
+            self.member_maps, now, self.t_start, spec, decoders_factory=decoders_factory,
+            finetune_lr=finetune_lr, color_weight=color_weight, seed=seed)
+        self.sharing = MemberUpdates(self.registry, self.kf_poses, spec.grid_size, share_every_s,
+                                     now)
 
     @classmethod
     def from_config(cls, cfg: CpslamConfig, fetch_image: Callable[[str, int], KeyframeImage |
                     None], **kwargs: Any) -> Backend:
         """A back end with the settings of a whole config (``kwargs`` override/add)."""
-        from cpslam.common.field_config import decoders_from_config, sampler_from_config
+        from cpslam.common.field_config import field_spec
 
-        f = cfg.field
+        spec = field_spec(cfg.field)
         args: dict[str, Any] = {
-            "feature_dim": f.feature_dim, "cell_size": f.grid_size, "k": f.k_neighbors,
-            "radius": f.radius, "seed": cfg.run.seed,
-            "decoders_factory": lambda: decoders_from_config(f, cfg.run.seed),
-            "sampler": sampler_from_config(f),
+            "seed": cfg.run.seed,
+            "decoders_factory": lambda: spec.decoders(cfg.run.seed),
             "finetune_lr": cfg.mapping.lr_decoders,
             "finetune_lr_features": cfg.mapping.lr_features,
+            "color_weight": cfg.mapping.color_weight,
         }
         args.update(kwargs)
-        backend = cls(cfg.loop, cfg.federation, cfg.pose_graph, cfg.refinement, fetch_image, **args)
+        backend = cls(cfg.loop, cfg.federation, cfg.pose_graph, cfg.refinement, fetch_image, spec,
+                      **args)
         if cfg.loop.refine and "refine_pose" not in kwargs:  # the paper's rendering refinement
             from cpslam.server.loops import PoseRefiner
             backend.refine_pose = PoseRefiner.from_config(cfg, backend.registry)
@@ -345,8 +344,8 @@ class Backend:
         maps, decoders, refined = refine_maps(
             groups, self.member_maps, lambda a: self.registry.agents[a].decoder,
             self.federator.finetune, self.feature_dim, self.cell_size,
-            self.refine_cfg.grid_filter, self.refine_cfg.finetune_iters,
-            self.finetune_lr_features)
+            grid_filter=self.refine_cfg.grid_filter, finetune_iters=self.refine_cfg.finetune_iters,
+            lr_features=self.finetune_lr_features)
         timings = {"final_pose_graph_s": t_graph, "refinement_s": time.perf_counter() - t1}
         main = max(maps, key=lambda g: (len(self.groups.groups[g].members), len(maps[g])),
                    default=None)

@@ -28,7 +28,7 @@ from cpslam.server.fusion import MemberMap, View, finetune_decoders, fuse
 
 if TYPE_CHECKING:
     from cpslam.common.config.collab import FederationConfig
-    from cpslam.common.field import Decoders
+    from cpslam.common.field import Decoders, FieldSpec
     from cpslam.protocol import DecoderWeights, KeyframeImage
     from cpslam.server.groups import Group, Groups
     from cpslam.server.registry import Registry
@@ -194,14 +194,14 @@ class Federator:
         kf_poses: ``agent -> {kf_id: T_group_kf}``, best current keyframe poses.
         member_maps: ``group -> [MemberMap]``, the members' sub-maps in the group frame.
         now, t_start: monotonic clock (s) and its value that round times count from.
+        spec: the neural field (fused maps, fine-tune rendering).
         decoders_factory: builds fresh `Decoders` to load averaged weights into for
             fine-tuning; None skips fine-tuning.
-        sampler: ray sampler of the fine-tunes (default: the paper's).
-        feature_dim, cell_size, k, radius: the neural field's point width, grid cell (m),
-            neighbours and radius (m).
         finetune_lr: Adam learning rate of the decoders.
-        finetune_views: most keyframe images pulled for one fine-tune.
+        color_weight: weight of the colour term of the fine-tune loss (the mapping loss's).
         seed: seed of every fine-tune.
+        At most ``federation.finetune_views`` keyframe images (all when null) are pulled for
+        one fine-tune.
     """
 
     def __init__(
@@ -214,22 +214,18 @@ class Federator:
         member_maps: Callable[[Group], list[MemberMap]],
         now: Callable[[], float],
         t_start: float,
-        decoders_factory: Callable[[], Decoders] | None = None,
-        sampler: Any = None,
-        feature_dim: int = 32,
-        cell_size: float = 0.14,
-        k: int = 8,
-        radius: float = 0.15,
-        finetune_lr: float = 0.003,
-        finetune_views: int = 8,
-        seed: int = 0,
+        spec: FieldSpec,
+        *,
+        decoders_factory: Callable[[], Decoders] | None,
+        finetune_lr: float,
+        color_weight: float,
+        seed: int,
     ) -> None:
         self.fed_cfg, self.registry, self.groups = federation, registry, groups
         self.image, self.kf_poses, self.member_maps = image, kf_poses, member_maps
         self.now, self.t_start = now, t_start
-        self.decoders_factory, self.sampler = decoders_factory, sampler
-        self.feature_dim, self.cell_size, self.k, self.radius = feature_dim, cell_size, k, radius
-        self.finetune_lr, self.finetune_views, self.seed = finetune_lr, finetune_views, seed
+        self.spec, self.decoders_factory = spec, decoders_factory
+        self.finetune_lr, self.color_weight, self.seed = finetune_lr, color_weight, seed
         self.rounds: dict[str, FederatedRound] = {}  # open, by group
         self.rounds_closed: list[dict] = []
 
@@ -315,16 +311,17 @@ class Federator:
     def finetune(self, group: Group, state: dict[str, np.ndarray], iters: int,
                  lr_features: float, point_map: Any = None) -> dict[str, np.ndarray]:
         """Decoder weights `state` fine-tuned on the group's map (fused from the members' when
-        `point_map` is None) and up to ``finetune_views`` keyframe images."""
+        `point_map` is None) and up to ``federation.finetune_views`` keyframe images."""
         if self.decoders_factory is None or iters <= 0:
             return state
         decoders = self.decoders_factory()
         decoders.load_state_dict({k: torch.as_tensor(v) for k, v in state.items()})
         if point_map is None:
-            point_map = fuse(self.member_maps(group), self.feature_dim, self.cell_size)
+            point_map = fuse(self.member_maps(group), self.spec.feature_dim,
+                             self.spec.grid_size)
         views = self._views(group)
         finetune_decoders(decoders, point_map, views, iters, self.finetune_lr, self.seed,
-                          self.sampler, k=self.k, radius=self.radius, lr_features=lr_features)
+                          self.spec, color_weight=self.color_weight, lr_features=lr_features)
         return {k: v.detach().cpu().numpy().astype(np.float32)
                 for k, v in decoders.state_dict().items()}
 
@@ -332,8 +329,8 @@ class Federator:
         keys = [(m, kf) for m in group.members for kf in self.registry.agents[m].kf_ids]
         if not keys:
             return []
-        pick = np.unique(np.linspace(0, len(keys) - 1, min(self.finetune_views, len(keys))
-                                     ).round().astype(int))
+        n_views = min(self.fed_cfg.finetune_views or len(keys), len(keys))
+        pick = np.unique(np.linspace(0, len(keys) - 1, n_views).round().astype(int))
         views = []
         for i in pick:
             agent, kf = keys[i]

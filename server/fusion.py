@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from cpslam.common.camera import Intrinsics
-from cpslam.common.field import Decoders, NeuralPointMap, RaySampler, camera_rays, render_rays
+from cpslam.common.field import Decoders, FieldSpec, NeuralPointMap, camera_rays, render_rays
 from cpslam.common.field.grid import grid_winners
 from cpslam.protocol import ForeignPoints
 
@@ -138,23 +138,22 @@ def finetune_decoders(
     iters: int,
     lr: float,
     seed: int,
-    sampler: RaySampler | None = None,
-    n_pixels: int = 1024,
-    k: int = 8,
-    radius: float = 0.15,
-    color_weight: float = 0.2,
+    spec: FieldSpec,
+    *,
+    color_weight: float,
     lr_features: float = 0.0,
-    backend: str = "auto",
+    n_pixels: int = 1024,
 ) -> list[float]:
     """Fine-tune `decoders` (and, with ``lr_features`` > 0, the map's features) in place on
-    random pixels of the views, with the mapping loss depth L1 + color_weight * colour L1.
+    random pixels of the views, with the mapping loss depth L1 + color_weight * colour L1,
+    rendered as the agents do (`spec`: sampler, neighbours, radius, search backend).
 
     Every step draws `n_pixels` pixels with valid depth spread over all views. Returns the
     loss of every step. Nothing happens (empty list) without views, points or iterations.
     """
     if iters <= 0 or not views or len(point_map) == 0:
         return []
-    sampler = sampler or RaySampler()
+    sampler = spec.sampler()
     device = point_map.device
     gen = torch.Generator().manual_seed(seed)
     rays = [_valid_pixels(v, device) for v in views]
@@ -174,7 +173,8 @@ def finetune_decoders(
     for _ in range(iters):
         pick = torch.randint(0, o.shape[0], (min(n_pixels, o.shape[0]),), generator=gen)
         out = render_rays(point_map, decoders, o[pick], d[pick], depth[pick], sampler,
-                          generator=gen, k=k, radius=radius, backend=backend)
+                          generator=gen, k=spec.k_neighbors, radius=spec.radius,
+                          backend=spec.neighbour_backend)
         loss = (out["depth"] - depth[pick]).abs().mean() + color_weight * (
             out["color"] - color[pick]).abs().mean()
         optimizer.zero_grad()

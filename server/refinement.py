@@ -32,9 +32,10 @@ def refine_maps(
     finetune: Callable[..., State],
     feature_dim: int,
     cell_size: float,
-    grid_filter: bool = True,
-    finetune_iters: int = 100,
-    lr_features: float = 0.005,
+    *,
+    grid_filter: bool,
+    finetune_iters: int,
+    lr_features: float,
 ) -> tuple[dict[str, NeuralPointMap], dict[str, State], list[dict[str, Any]]]:
     """Each group's refined map and decoder weights.
 

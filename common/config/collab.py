@@ -67,6 +67,8 @@ class LoopConfig(Section):
     """Track the loop keyframe against the other sub-map from the coarse pose (docs/loops.md)."""
     register_iters: PositiveInt = 200
     """Tracking steps refining a loop's relative pose against the other sub-map (our choice)."""
+    verify: bool = True
+    """Check a loop's overlap, residual, colour and free space before it becomes an edge."""
     verify_max_residual: PositiveFloat = 0.05
     """Largest accepted RMS point-to-plane residual of a loop after alignment (m)."""
     verify_min_overlap: float = Field(default=0.3, ge=0.0, le=1.0)
@@ -97,7 +99,9 @@ class FederationConfig(Section):
     round_timeout_s: PositiveFloat = 30.0
     """A round closes with the weights that arrived within this time (s)."""
     finetune_iters: NonNegativeInt = 100
-    """Steps fine-tuning the averaged decoders on all keyframes after a merge."""
+    """Steps fine-tuning the averaged decoders on keyframe images after a merge."""
+    finetune_views: PositiveInt | None = 8
+    """Keyframe images a fine-tune trains on, spread over the group's keyframes; null = all."""
     weighting: Literal["samples", "uniform"] = "samples"
     """Average weighted by each agent's sample count, or uniformly."""
 

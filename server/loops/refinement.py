@@ -40,14 +40,13 @@ import logging
 import math
 import time
 import zlib
-from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
 
 from cpslam.common.camera import Intrinsics
-from cpslam.common.field import Decoders, NeuralPointMap, RaySampler
+from cpslam.common.field import Decoders, FieldSpec, NeuralPointMap
 from cpslam.common.field.tracking import Tracker
 from cpslam.common.geometry import compose, invert
 from cpslam.common.registration import Registration, RegistrationParams, verify
@@ -71,51 +70,41 @@ class PoseRefiner:
 
     Args:
         registry: the server's registry (read at every call: B's points, keyframes, weights).
-        decoders_factory: builds `Decoders` of the server's shape to load an agent's weights.
-        sampler: ray sampler of the tracking (the agents' one).
-        feature_dim, cell_size: the field's point feature width and grid cell (m).
+        spec: the agents' field (sub-map, decoders of their shape, tracker's rendering).
         params: thresholds of the geometric verification (the ``loop`` section).
         seed: seeds the pixel draws (with the pair, so a pair refines the same way each time).
-        **tracker_args: keyword arguments of `Tracker` (the ``tracking`` and ``field``
-            sections, `tracker_args_from_config`; ``iters`` is ``loop.register_iters``);
-            ``n_pixels`` pixels are drawn for tracking and again for the residual check.
+        **tracker_args: keyword arguments of `Tracker` (the ``tracking`` section,
+            `tracker_args_from_config`; ``iters`` is ``loop.register_iters``); ``n_pixels``
+            pixels are drawn for tracking and again for the residual check.
     """
 
     def __init__(
         self,
         registry: Registry | None,
-        decoders_factory: Callable[[], Decoders],
-        sampler: RaySampler,
-        feature_dim: int = 32,
-        cell_size: float = 0.14,
-        params: RegistrationParams | None = None,
-        seed: int = 0,
+        spec: FieldSpec,
+        *,
+        params: RegistrationParams,
+        seed: int,
         **tracker_args: Any,
     ) -> None:
         self.registry = registry
-        self.decoders_factory, self.sampler = decoders_factory, sampler
-        self.feature_dim, self.cell_size = int(feature_dim), float(cell_size)
-        # 200 steps unless told: more than an agent's per-frame default (Tracker's 100).
-        self.tracker_args: dict[str, Any] = {"iters": 200, **tracker_args}
-        Tracker(Intrinsics(1.0, 1.0, 0.0, 0.0, 1, 1), sampler, **self.tracker_args)  # checks
-        self.params = params or RegistrationParams()
+        self.spec = spec
+        self.feature_dim, self.cell_size = spec.feature_dim, spec.grid_size
+        self.tracker_args: dict[str, Any] = dict(tracker_args)
+        Tracker(Intrinsics(1.0, 1.0, 0.0, 0.0, 1, 1), spec, **self.tracker_args)  # checks
+        self.params = params
         self.seed = int(seed)
 
     @classmethod
     def from_config(cls, cfg: CpslamConfig, registry: Registry | None) -> PoseRefiner:
         """Settings of the ``field``, ``tracking`` and ``loop`` sections."""
-        from cpslam.common.field_config import (
-            decoders_from_config,
-            sampler_from_config,
-            tracker_args_from_config,
-        )
+        from cpslam.common.field_config import field_spec, tracker_args_from_config
 
-        f, lp = cfg.field, cfg.loop
+        lp = cfg.loop
         return cls(
-            registry, lambda: decoders_from_config(f, cfg.run.seed), sampler_from_config(f),
-            feature_dim=f.feature_dim, cell_size=f.grid_size,
+            registry, field_spec(cfg.field),
             params=RegistrationParams.from_config(lp, cfg.run.seed), seed=cfg.run.seed,
-            **{**tracker_args_from_config(f, cfg.tracking), "iters": lp.register_iters})
+            **{**tracker_args_from_config(cfg.tracking), "iters": lp.register_iters})
 
     # ------------------------------------------------------------------------------ hook
 
@@ -155,7 +144,7 @@ class PoseRefiner:
             point_map = point_map.subset(torch.from_numpy(np.abs(rank - i_b) < np.abs(rank - i_a)))
         if len(point_map) == 0:
             return f"no points of agent {cand.agent_b} to track against"
-        decoders = self.decoders_factory()
+        decoders = self.spec.decoders(self.seed)
         decoders.load_state_dict({k: torch.as_tensor(v) for k, v in rec.decoder.items()})
         decoders.eval()
         return point_map, decoders, rec.keyframes[int(cand.kf_b)].T_own_kf
@@ -173,13 +162,13 @@ class PoseRefiner:
         rgb_a, depth_a = keyframe_rgbd(img_a)
         depth_t = torch.from_numpy(depth_a).to(point_map.device)
         rgb_t = torch.from_numpy(rgb_a).to(point_map.device).float() / 255.0
-        tracker = Tracker(intr_a, self.sampler, **self.tracker_args)
+        tracker = Tracker(intr_a, self.spec, **self.tracker_args)
         T_B_a0 = compose(T_B_b, invert(T_a_b))
         track = tracker.track(point_map, decoders, rgb_t, depth_t, T_B_a0,
                               torch.Generator().manual_seed(seed))
         T_a_b_ref = compose(invert(track.T_world_cam), T_B_b)
         # The residual on fresh pixels: the tracked batch always favours the refined pose.
-        check = Tracker(intr_a, self.sampler, **{**self.tracker_args, "iters": 1})
+        check = Tracker(intr_a, self.spec, **{**self.tracker_args, "iters": 1})
         losses = []
         for T in (T_B_a0, track.T_world_cam):
             out = check.track(point_map, decoders, rgb_t, depth_t, T,

@@ -50,9 +50,12 @@ class LoopRecord:
 
 
 def judge(reg: Any, cfg: LoopConfig) -> str:
-    """Empty when the registration passes the thresholds, else why not."""
+    """Empty when the registration passes the thresholds, else why not (``loop.verify`` off:
+    only a failed registration is rejected)."""
     if not reg.success:
         return reg.reason or "registration failed"
+    if not cfg.verify:
+        return ""
     if not reg.inlier_rmse <= cfg.verify_max_residual:
         return f"residual {reg.inlier_rmse:.4f} m > {cfg.verify_max_residual}"
     if not reg.fitness >= cfg.verify_min_overlap:

@@ -28,3 +28,10 @@ def tracker_args(preset: str = "gpu", **changes: object) -> dict:
 def mapper_args(preset: str = "gpu", **changes: object) -> dict:
     """`Mapper` keywords from the preset's `mapping` section, with `changes`."""
     return {**mapper_args_from_config(load_config(preset, env={}).mapping), **changes}
+
+
+def finetune_args(preset: str = "gpu", **changes: object) -> dict:
+    """`Backend`'s fine-tune keywords (the `mapping` section's rates, the run's seed)."""
+    cfg = load_config(preset, env={})
+    return {"finetune_lr": cfg.mapping.lr_decoders, "finetune_lr_features": cfg.mapping.lr_features,
+            "color_weight": cfg.mapping.color_weight, "seed": cfg.run.seed, **changes}

@@ -13,6 +13,7 @@ import json
 import numpy as np
 import pytest
 import torch
+from spec_helpers import finetune_args, spec
 from voxel_place import voxel_descriptor
 
 from cpslam.common.config.collab import (
@@ -45,9 +46,12 @@ AGENTS = ("a0", "a1")
 pytestmark = pytest.mark.slow  # one shared scenario: ~30 s with the real registration
 
 
+SPEC = spec(feature_dim=F, pe_offset_order=2, c_hidden=16, g_hidden=16, u_hidden=16,
+            u_layers=1)
+
+
 def small_decoders(seed: int = 0) -> Decoders:
-    return Decoders(feature_dim=F, pe_offset=2, c_hidden=16, c_out=16, g_hidden=16,
-                    u_hidden=16, u_layers=1, seed=seed)
+    return SPEC.decoders(seed)
 
 
 class CosineDatabase:
@@ -146,8 +150,9 @@ def make_backend(scenario, clock, **kw):
     args = dict(loop=LoopConfig(lambda_fine=0.9, lambda_coarse=0.85, icp_voxel_size=0.08),
                 federation=FederationConfig(finetune_iters=2, round_timeout_s=5.0),
                 pose_graph=PoseGraphConfig(), refinement=RefinementConfig(finetune_iters=2),
-                fetch_image=fetch, feature_dim=F, now=lambda: clock[0],
-                database=CosineDatabase(0.9, 0.85), decoders_factory=small_decoders)
+                fetch_image=fetch, spec=SPEC, now=lambda: clock[0],
+                database=CosineDatabase(0.9, 0.85), decoders_factory=small_decoders,
+                **finetune_args())
     args.update(kw)
     return Backend(**args)
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from spec_helpers import finetune_args, spec
 from voxel_place import voxel_descriptor
 
 from cpslam.common.config.collab import (
@@ -99,8 +100,8 @@ def backend(scenario: dict, clock: list[float], fetch=None, **kw) -> Backend:
     loop = kw.pop("loop", loop_config())
     args = dict(loop=loop, federation=FederationConfig(enabled=False),
                 pose_graph=PoseGraphConfig(), refinement=RefinementConfig(finetune_iters=0),
-                fetch_image=fetch or (lambda agent, kf: image(scenario, kf)), feature_dim=8,
-                now=lambda: clock[0],
+                fetch_image=fetch or (lambda agent, kf: image(scenario, kf)),
+                spec=spec(feature_dim=8), now=lambda: clock[0], **finetune_args(),
                 database=DescriptorDatabase(loop.lambda_fine, loop.lambda_coarse,
                                             loop.min_keyframe_gap, loop.max_candidates))
     args.update(kw)

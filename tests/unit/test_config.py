@@ -24,7 +24,7 @@ from cpslam.common.config import (
 )
 from cpslam.common.config import loader as loader_mod
 from cpslam.common.config.reference import preset_comments
-from cpslam.common.field_config import decoders_from_config
+from cpslam.common.field_config import field_spec
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
@@ -113,7 +113,7 @@ def test_paper_preset_is_the_paper() -> None:
     assert f.feature_dim * (1 + 2 * f.pe_feature_order) == 96
     assert 3 * (1 + 2 * f.pe_offset_order) == 45
     # The paper's decoder size: 1.36e5 parameters.
-    decoders = decoders_from_config(f, seed=0)
+    decoders = field_spec(f).decoders(seed=0)
     assert round(sum(p.numel() for p in decoders.parameters()), -3) == 136_000
 
 

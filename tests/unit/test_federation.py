@@ -151,3 +151,24 @@ def test_round_refuses_strangers_and_empty_results():
         rnd.result()
     with pytest.raises(ValueError, match="no members"):
         FederatedRound("g", 0, set(), deadline_s=0.0)
+
+
+@pytest.mark.parametrize(("views", "pulled"), [(3, [0, 4, 9]), (None, list(range(10)))])
+def test_finetune_views_spread_over_the_keyframes_or_all(views, pulled):
+    """federation.finetune_views images, evenly spread; null (the paper) pulls every one."""
+    from types import SimpleNamespace
+
+    from spec_helpers import finetune_args, spec
+
+    from cpslam.common.config.collab import FederationConfig
+    from cpslam.server.federation import Federator
+    from cpslam.server.groups import Group
+
+    asked: list[int] = []
+    registry = SimpleNamespace(agents={"a": SimpleNamespace(kf_ids=list(range(10)))})
+    fed = Federator(FederationConfig(finetune_views=views), registry, None,
+                    lambda agent, kf: asked.append(kf), lambda agent: {}, lambda group: [],
+                    lambda: 0.0, 0.0, spec(), decoders_factory=None,
+                    **{k: v for k, v in finetune_args().items() if k != "finetune_lr_features"})
+    assert fed._views(Group("a", "a", T_group_agent={"a": np.eye(4)})) == []  # no image
+    assert asked == pulled

@@ -5,9 +5,10 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+from spec_helpers import spec
 
 from cpslam.common.camera import Intrinsics
-from cpslam.common.field import Decoders, NeuralPointMap
+from cpslam.common.field import NeuralPointMap
 from cpslam.server.fusion import ForeignTracker, MemberMap, View, finetune_decoders, fuse
 
 CELL = 0.1
@@ -67,10 +68,11 @@ def test_finetune_lowers_the_loss_on_a_plane():
     v, u = np.mgrid[0:24:2, 0:32:2]
     xyz = np.stack([(u - 15.5) / 40.0, (v - 11.5) / 40.0, np.ones_like(u, float)], -1)
     m = member("a", 0, xyz.reshape(-1, 3), f=4)
-    dec = Decoders(feature_dim=4, pe_offset=2, c_hidden=16, c_out=16, g_hidden=16,
-                   u_hidden=16, u_layers=1)
+    small = spec(feature_dim=4, pe_offset_order=2, c_hidden=16, g_hidden=16, u_hidden=16,
+                 u_layers=1, radius=0.1)
+    dec = small.decoders(seed=0)
     views = [View(rgb, depth, np.eye(4), intr)]
-    losses = finetune_decoders(dec, m.point_map, views, iters=15, lr=0.02, seed=0, n_pixels=64,
-                               radius=0.1)
+    losses = finetune_decoders(dec, m.point_map, views, iters=15, lr=0.02, seed=0, spec=small,
+                               color_weight=0.2, n_pixels=64)
     assert len(losses) == 15 and np.mean(losses[-3:]) < 0.8 * np.mean(losses[:3])
-    assert finetune_decoders(dec, m.point_map, [], 5, 0.01, 0) == []
+    assert finetune_decoders(dec, m.point_map, [], 5, 0.01, 0, small, color_weight=0.2) == []

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 import torch
+from spec_helpers import finetune_args, spec
 
 from cpslam.common.config.collab import (
     FederationConfig,
@@ -28,9 +29,7 @@ from cpslam.common.config.collab import (
 )
 from cpslam.common.field import (
     Decoders,
-    FeatureCNN,
     NeuralPointMap,
-    RaySampler,
     patch_points,
     render_image,
 )
@@ -45,12 +44,12 @@ CELL = 0.1
 K, RADIUS = 6, 0.15
 FRAMES = (40, 50, 59)  # keyframes 0, 1, 2 of each agent, near the end of its walk
 AGENTS = ("a", "b")
-SAMPLER = dict(n_near=8, n_uniform=2)
+SPEC = spec(feature_dim=F, grid_size=CELL, k_neighbors=K, radius=RADIUS, pe_offset_order=2,
+            c_hidden=16, g_hidden=16, u_hidden=16, u_layers=1, n_near=8, n_uniform=2)
 
 
 def small_decoders() -> Decoders:
-    return Decoders(feature_dim=F, pe_offset=2, c_hidden=16, c_out=16, g_hidden=16,
-                    u_hidden=16, u_layers=1, seed=0)
+    return SPEC.decoders(seed=0)
 
 
 @dataclass(frozen=True)
@@ -96,7 +95,7 @@ def scene() -> dict:
     agents = {}
     for agent, traj in zip(AGENTS, gt, strict=True):
         T_own_world = invert(traj[FRAMES[0]])  # the agent's world: its first keyframe
-        point_map, cnn, views, images = NeuralPointMap(F, CELL, 0), FeatureCNN(F, seed=0), [], []
+        point_map, cnn, views, images = SPEC.point_map(0, "cpu"), SPEC.cnn(0), [], []
         for kf, f in enumerate(FRAMES):
             T = compose(T_own_world, traj[f])
             img = renderer.render(traj[f])
@@ -109,8 +108,8 @@ def scene() -> dict:
             views.append(View(img.rgb, depth, T, intr))
             images.append((img.rgb, depth))
         decoders = small_decoders()
-        finetune_decoders(decoders, point_map, views, 120, 0.02, 0, RaySampler(**SAMPLER),
-                          n_pixels=500, k=K, radius=RADIUS, lr_features=0.02)
+        finetune_decoders(decoders, point_map, views, 120, 0.02, 0, SPEC, color_weight=0.2,
+                          n_pixels=500, lr_features=0.02)
         agents[agent] = dict(point_map=point_map, decoders=decoders, views=views,
                              images=images, T_own_world=T_own_world)
     torch.set_num_threads(before)
@@ -128,9 +127,9 @@ def merged(scene: dict) -> tuple[Backend, list]:
                                          height=intr.height, rgb_codec="png", rgb=rgb)
 
     backend = Backend(LoopConfig(), FederationConfig(finetune_iters=100), PoseGraphConfig(),
-                      RefinementConfig(), fetch, feature_dim=F, cell_size=CELL, k=K,
-                      radius=RADIUS, database=OnePair(), decoders_factory=small_decoders,
-                      sampler=RaySampler(**SAMPLER), finetune_lr=0.01, now=lambda: 0.0)
+                      RefinementConfig(), fetch, SPEC, database=OnePair(),
+                      decoders_factory=small_decoders, now=lambda: 0.0,
+                      **finetune_args(finetune_lr=0.01))
     out = []
     for agent in AGENTS:
         a = agents[agent]
@@ -156,8 +155,8 @@ def merged(scene: dict) -> tuple[Backend, list]:
 
 
 def render_depth(point_map: NeuralPointMap, decoders: Decoders, intr, T_world_cam) -> np.ndarray:
-    out = render_image(point_map, decoders, intr, torch.as_tensor(T_world_cam), step=2,
-                       sampler=RaySampler(**SAMPLER, perturb=False), k=K, radius=RADIUS)
+    out = render_image(point_map, decoders, intr, torch.as_tensor(T_world_cam),
+                       SPEC.sampler(perturb=False), step=2, k=K, radius=RADIUS)
     return out["depth"].numpy()
 
 

@@ -13,7 +13,7 @@ from cpslam.agent.odometry import Odometry
 from cpslam.common.camera import Intrinsics
 from cpslam.common.config import load_config
 from cpslam.common.datasets import RGBDFrame
-from cpslam.common.field_config import decoders_from_config
+from cpslam.common.field_config import field_spec
 from cpslam.common.geometry import se3_exp
 from cpslam.protocol import (
     Ack,
@@ -271,7 +271,7 @@ def test_joining_a_group_offers_weights_at_the_next_mapping() -> None:
 def test_shared_decoder_is_fitted_to_the_map_before_the_next_frame_is_tracked() -> None:
     # Decoders that do not match the agent's features (what an average of two agents' is)
     # make tracking worse until the map is re-fitted; the re-fit runs before the next track.
-    other = decoders_from_config(load_config("tiny", env={}).field, seed=123).state_dict()
+    other = field_spec(load_config("tiny", env={}).field).decoders(seed=123).state_dict()
     losses = {}
     for refit in (True, False):
         link = _link(rounds=100)

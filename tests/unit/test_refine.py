@@ -11,8 +11,9 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 import torch
+from spec_helpers import spec, tracker_args
 
-from cpslam.common.field import Decoders, FeatureCNN, NeuralPointMap, RaySampler, patch_points
+from cpslam.common.field import Decoders, patch_points
 from cpslam.common.geometry import compose, invert, se3_exp
 from cpslam.common.registration import RegistrationParams, verify
 from cpslam.protocol import DecoderWeights, KeyframeImage, KeyframeMsg, SubmapDelta
@@ -36,9 +37,12 @@ class Cand:
     kind: str = "fine"
 
 
+SPEC = spec(feature_dim=F, grid_size=CELL, k_neighbors=6, radius=0.15, pe_offset_order=2,
+            c_hidden=16, g_hidden=16, u_hidden=16, u_layers=1, n_near=8, n_uniform=2)
+
+
 def small_decoders() -> Decoders:
-    return Decoders(feature_dim=F, pe_offset=2, c_hidden=16, c_out=16, g_hidden=16,
-                    u_hidden=16, u_layers=1, seed=0)
+    return SPEC.decoders(seed=0)
 
 
 def image(agent: str, kf: int, rgbd, intr) -> KeyframeImage:
@@ -68,8 +72,8 @@ def scene() -> dict:
         return img.rgb, img.depth.astype(np.float32)
 
     T_b_world = invert(gt[0])  # b's own world is its first camera
-    point_map = NeuralPointMap(F, CELL, 0)
-    cnn = FeatureCNN(F, seed=0)
+    point_map = SPEC.point_map(0, "cpu")
+    cnn = SPEC.cnn(0)
     views = []
     for kf, f in enumerate(B_FRAMES):
         T = compose(T_b_world, gt[f])
@@ -79,8 +83,8 @@ def scene() -> dict:
         point_map.add_points(xyz, kf, feats, colors)
         views.append(View(rgb, depth, T, intr))
     decoders = small_decoders()
-    finetune_decoders(decoders, point_map, views, 200, 0.02, 0, RaySampler(n_near=8, n_uniform=2),
-                      n_pixels=1200, k=6, radius=0.15, lr_features=0.02)
+    finetune_decoders(decoders, point_map, views, 200, 0.02, 0, SPEC, color_weight=0.2,
+                      n_pixels=1200, lr_features=0.02)
     torch.set_num_threads(before)
 
     registry = Registry(F)
@@ -106,10 +110,10 @@ def with_weights(registry: Registry, decoders: Decoders) -> Registry:
 
 
 def refiner(registry: Registry | None, **kwargs) -> PoseRefiner:
-    args = dict(feature_dim=F, cell_size=CELL, iters=100, n_pixels=400, lr=0.002, k=6,
-                radius=0.15, params=RegistrationParams())
+    args = dict(params=RegistrationParams(), seed=0,
+                **tracker_args(iters=100, n_pixels=400, lr=0.002))
     args.update(kwargs)
-    return PoseRefiner(registry, small_decoders, RaySampler(n_near=8, n_uniform=2), **args)
+    return PoseRefiner(registry, SPEC, **args)
 
 
 def errors(T: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:

@@ -203,6 +203,21 @@ def test_params_from_config():
     assert params.inlier_radius == pytest.approx(0.08)
 
 
+def test_without_verification_a_pose_is_kept_whatever_the_checks_say(room):
+    """`loop.verify: false` (the paper): a wrong but estimated pose is not rejected."""
+    from cpslam.common.config.collab import LoopConfig
+    from cpslam.server.loops.verification import judge
+
+    src, dst, T_true = render_pair(room, orbit(TARGET_A, 200), orbit(TARGET_A, 230))
+    T_wrong = compose(T_true, se3_exp(np.array([0.4, 0.0, 0.0, 0.0, 0.5, 0.0])))
+    checked, unchecked = LoopConfig(), LoopConfig(verify=False)
+    strict = verify(src, dst, room.intrinsics, T_wrong, RegistrationParams.from_config(checked))
+    assert not strict.success and judge(strict, checked)
+    loose = verify(src, dst, room.intrinsics, T_wrong, RegistrationParams.from_config(unchecked))
+    assert loose.success and judge(loose, unchecked) == ""
+    assert judge(strict, unchecked)  # a registration that failed is still rejected
+
+
 @pytest.mark.data
 def test_real_kitchen_pair(kitchen_path: Path):
     from cpslam.common.camera import resize_rgbd
