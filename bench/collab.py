@@ -65,9 +65,9 @@ def loop_edges(result, seqs, same_source: bool = False) -> dict:
     same_source: the agents' sequences are slices of one recording, so the ground truth's
     jumps are found on their union by frame index; an edge whose two keyframes lie on either
     side of a jump has no truth to compare with and is only counted (`no_truth`)."""
-    from cpslam.common.eval import reference_jumps
     from cpslam.common.geometry import invert, se3_log
     from cpslam.server.pose_graph import CHI2_6DOF_95
+    from cpslam.tools.eval import reference_jumps
 
     graph = result.final.pose_graph
     if graph is None:
@@ -142,7 +142,7 @@ def _stamp(seqs, result, agent: str, frame_index: int) -> float:
 def _false_loops(result, seqs, fraction: float, seed: int) -> dict:
     """Inject false loop edges into the final pose graph, optimise again from the odometry
     (not from the already corrected poses), joint ATE again."""
-    from cpslam.common.eval import joint_ate
+    from cpslam.tools.eval import joint_ate
 
     graph = result.final.pose_graph
     if graph is None:

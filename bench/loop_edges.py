@@ -88,9 +88,9 @@ def evaluate(path: Path, factor: float, cfg, args) -> dict:
     """Register every overlapping pair of the sequence at this size."""
     from cpslam.common.camera import resize_rgbd
     from cpslam.common.datasets import open_sequence
-    from cpslam.common.eval import reference_jumps
     from cpslam.common.geometry import invert, se3_log
     from cpslam.common.registration import RegistrationParams, register_rgbd
+    from cpslam.tools.eval import reference_jumps
 
     seq = open_sequence(path, frames=slice(0, args.frames))
     gt = seq.gt_poses()

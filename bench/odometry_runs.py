@@ -34,7 +34,7 @@ def ensure_scene(spec: dict, frames: int) -> Path:
     """The scene's sequence folder, rendered on first use."""
     out = DATA / f"{spec['name']}-{frames}-{SIZE[0]}x{SIZE[1]}"
     if not (out / "agent_0" / "traj.txt").is_file():
-        from cpslam.common.synth import generate
+        from cpslam.tools.synth import generate
 
         print(f"  rendering {spec['name']} ({frames} frames) into {out}", file=sys.stderr,
               flush=True)
@@ -115,7 +115,7 @@ def accuracy(seq, stamps: np.ndarray, poses: np.ndarray, real: bool) -> dict:
     """ATE (origin and se3 for synthetic, se3 and over the pieces for real), the largest
     position error after the alignment, and the RPE over 1, 10, 50 and 100 frames (the
     longer spans calibrate the pose graph's odometry edges)."""
-    from cpslam.common.eval import evaluate_ate, evaluate_rpe, reference_jumps, segmented_ate
+    from cpslam.tools.eval import evaluate_ate, evaluate_rpe, reference_jumps, segmented_ate
 
     gt = seq.gt_poses()
     out = {}

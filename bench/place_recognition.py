@@ -14,7 +14,7 @@ time (backbone load plus, for untrained NetVLAD, k-means over procedural images)
 Sequences: the 7-Scenes red kitchen excerpt (`--kitchen`, default ../shared/data/
 7scenes-kitchen-0-299, every frame) and synthetic collections (`--synth DIR`: one sequence in
 Replica layout or a collection of agent_* sequences, repeatable; `--synth-generate` renders a
-two-agent apartment loop into a temporary folder with cpslam.common.synth.generate).
+two-agent apartment loop into a temporary folder with cpslam.tools.synth.generate).
 
 Variants are aggregation:layer:param with param = clusters (netvlad) or p (gem).
 
@@ -172,7 +172,7 @@ def load_frames(dirs: list[Path], step: int) -> tuple[list[np.ndarray], np.ndarr
 
 def generate_apartment(folder: Path, frames: int, seed: int) -> list[Path]:
     """A two-agent synthetic apartment collection with loops, rendered by the synthesizer."""
-    from cpslam.common.synth import generate
+    from cpslam.tools.synth import generate
 
     result = generate(
         folder / "apartment", scene="apartment", agents=2, frames=frames, loop=True, seed=seed

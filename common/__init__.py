@@ -1,1 +1,2 @@
-"""What agents and server share: config, geometry, camera, datasets, evaluation."""
+"""What agents and server share at run time: config, geometry, camera, datasets, the neural
+point field, registration, the bus."""

@@ -1,6 +1,6 @@
 """The umbrella command line: `cpslam dataset …`, `cpslam eval …`.
 
-Each command lives next to the code it drives (for example `cpslam.common.synth.cli`) and
+Each command lives next to the code it drives (for example `cpslam.tools.synth.cli`) and
 is only registered here, so that this file stays a table of contents. Heavy libraries
 (torch, open3d) are imported inside the commands, which keeps `cpslam --help` fast.
 """
@@ -13,15 +13,15 @@ from cpslam import __version__
 from cpslam.common.config.cli import presets as config_presets
 from cpslam.common.config.cli import show as config_show
 from cpslam.common.datasets.cli import info as dataset_info
-from cpslam.common.eval.cli import ate as eval_ate
-from cpslam.common.eval.recon_cli import recon as eval_recon
 from cpslam.common.logs import setup_logging
-from cpslam.common.render import render
-from cpslam.common.synth.cli import synth as dataset_synth
 from cpslam.demo import demo
 from cpslam.run import run as run_command
 from cpslam.server.client import finalise as server_finalise
 from cpslam.server.client import status as server_status
+from cpslam.tools.eval.cli import ate as eval_ate
+from cpslam.tools.eval.recon_cli import recon as eval_recon
+from cpslam.tools.render import render
+from cpslam.tools.synth.cli import synth as dataset_synth
 
 app = typer.Typer(
     no_args_is_help=True,

@@ -1,6 +1,6 @@
 """`cpslam demo`: a server and N agents as separate processes over loopback TCP, then a report.
 
-1. The synthetic scene (`cpslam.common.synth.generate`, N agents walking a 300-frame path) is
+1. The synthetic scene (`cpslam.tools.synth.generate`, N agents walking a 300-frame path) is
    generated once and cached under ``DATA/<scene>-<N>x<walk>-<W>x<H>-s<seed>/`` (``--data-dir``,
    default ``runs/data``); a folder with its ``scene.json`` is complete and reused.
 2. ``python -m cpslam.server.cli`` listens on ``tcp/127.0.0.1:PORT`` (a free port unless
@@ -10,7 +10,7 @@
 3. Progress: the server's status query (frames, keyframes, groups, loops) once a second.
 4. When every agent exited 0, a ``Control(finalise)`` message asks the server for the final
    pose graph, refinement and outputs; it exits 0.
-5. `cpslam.report`: tables (results; traffic per agent and key), peak memory of every
+5. `cpslam.tools.report`: tables (results; traffic per agent and key), peak memory of every
    process, plots, mesh; the list of outputs.
 
 A child that dies (an agent with a non-zero code, the server at all before it was asked to
@@ -67,7 +67,7 @@ def scene_data(data_dir: Path, scene: str, agents: int, walk: int, width: int, h
                seed: int, show_progress: bool = True, loop: bool = False) -> list[Path]:
     """The agents' sequence folders of a synthetic scene, generated on first use (`loop`:
     closed trajectories, as ``cpslam dataset synth --loop``)."""
-    from cpslam.common.synth import generate
+    from cpslam.tools.synth import generate
 
     out = Path(data_dir) / (f"{scene}-{agents}x{walk}-{width}x{height}-s{seed}"
                             + ("-loop" if loop else ""))
@@ -308,7 +308,7 @@ def _status(bus: Any) -> dict:
 def _report(out: Path, info: dict, mesh: bool, show: bool) -> None:
     from rich.console import Console
 
-    from cpslam.report import build_report, print_report
+    from cpslam.tools.report import build_report, print_report
 
     t = time.monotonic()
     seqs = {a: Path(p) for a, p in info["sequences"].items()}

@@ -167,7 +167,7 @@ def evaluate_run(result: CollabRun, sequences: list[RGBDSequence]) -> dict[str, 
     """ATE (m) of the global trajectories against ground truth: one se3 alignment for all
     agents (joint), per agent with the paper's origin alignment, and the same without the
     pose graph. Empty when a sequence has no ground truth."""
-    from cpslam.common.eval import joint_ate
+    from cpslam.tools.eval import joint_ate
 
     gts = {}
     for aid, seq in zip(result.agent_ids, sequences, strict=True):

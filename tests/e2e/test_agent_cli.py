@@ -71,7 +71,7 @@ def test_render_a_string_agent_id_from_ground_truth(room: Path, tmp_path: Path) 
     """`cpslam render --agent robot-2` finds agent_robot-2/; the --help example's form
     (`--poses <dataset folder> --relative`) puts the ground truth into the agent's world."""
     from cpslam.common.datasets import open_sequence
-    from cpslam.common.eval.source import load_trajectory
+    from cpslam.tools.eval.source import load_trajectory
 
     run = tmp_path / "run"
     assert _agent("--seq", str(room), "--standalone", "--frames", "4:10", "--agent-id",

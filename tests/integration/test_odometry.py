@@ -16,14 +16,14 @@ from cpslam.agent.odometry import Odometry
 from cpslam.common.camera import resize_rgbd
 from cpslam.common.config import load_config
 from cpslam.common.datasets import RGBDFrame, open_sequence
-from cpslam.common.eval import evaluate_ate
+from cpslam.tools.eval import evaluate_ate
 
 pytest.importorskip("open3d")  # the synthetic renderer
 
 
 @pytest.fixture(scope="module")
 def sequence_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from cpslam.common.synth import generate
+    from cpslam.tools.synth import generate
 
     out = tmp_path_factory.mktemp("synth") / "room"
     result = generate(out, scene="room", frames=20, width=640, height=480, seed=0)

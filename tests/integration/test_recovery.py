@@ -27,7 +27,7 @@ SETS = ("tracking.method=lm", "tracking.color_weight=1", "tracking.iters=10",
 def prefix(tmp_path_factory: pytest.TempPathFactory) -> dict:
     """Frames 0..FRAME+2 of a synthetic room at 320x240 and the odometry's state after the
     frames before FRAME (tracked with recovery on: nothing was suspect)."""
-    from cpslam.common.synth import generate
+    from cpslam.tools.synth import generate
 
     out = tmp_path_factory.mktemp("synth") / "room"
     result = generate(out, scene="room", frames=FRAME + 3, width=320, height=240, seed=0)

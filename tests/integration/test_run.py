@@ -24,7 +24,7 @@ def _invoke(args: list[str]) -> None:
 
 @pytest.mark.slow
 def test_two_agents_merge_and_agree_with_ground_truth(tmp_path: Path) -> None:
-    from cpslam.common.synth import generate
+    from cpslam.tools.synth import generate
 
     # 300 frames at 1 cm per frame: the agents meet from about frame 170; every third frame
     # keeps the test short (measured: merge at frame ~165, joint se3 ATE 0.40 m, 130 s on a
@@ -49,7 +49,7 @@ def test_two_agents_merge_and_agree_with_ground_truth(tmp_path: Path) -> None:
 
 @pytest.mark.slow
 def test_single_agent_run_writes_all_outputs(tmp_path: Path) -> None:
-    from cpslam.common.synth import generate
+    from cpslam.tools.synth import generate
 
     data = generate(tmp_path / "room", scene="room", frames=30, width=160, height=120, seed=0,
                     loop=True)

@@ -40,7 +40,7 @@ def daemons():
 @pytest.fixture(scope="module")
 def apartment(tmp_path_factory: pytest.TempPathFactory):
     """Two agents in the synthetic apartment; they meet from about frame 170 of 300."""
-    from cpslam.common.synth import generate
+    from cpslam.tools.synth import generate
 
     return generate(tmp_path_factory.mktemp("apt") / "apt", scene="apartment", agents=2,
                     frames=300, seed=0)
@@ -48,8 +48,8 @@ def apartment(tmp_path_factory: pytest.TempPathFactory):
 
 def test_two_agents_merge_over_tcp(tmp_path: Path, endpoint: str, apartment, daemons) -> None:
     from cpslam.common.datasets import open_sequence
-    from cpslam.common.eval import joint_ate
     from cpslam.common.trajectory import read_tum
+    from cpslam.tools.eval import joint_ate
 
     out, s = tmp_path / "run", "merge"
     server = Daemon("server", server_args(endpoint, s, out), tmp_path)

@@ -115,7 +115,7 @@ def _rx_bytes(ns: str, dev: str) -> int:
 
 
 def test_server_and_agents_in_separate_network_namespaces(tmp_path: Path, namespaces) -> None:
-    from cpslam.common.synth import generate
+    from cpslam.tools.synth import generate
 
     names, addresses = namespaces
     data = generate(tmp_path / "apt", scene="apartment", agents=2, frames=40, width=160,

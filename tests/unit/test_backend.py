@@ -76,9 +76,9 @@ class CosineDatabase:
 
 @pytest.fixture(scope="module")
 def scenario():
-    from cpslam.common.synth.render import Renderer, default_intrinsics
-    from cpslam.common.synth.scene import build_scene
-    from cpslam.common.synth.trajectory import plan_trajectories
+    from cpslam.tools.synth.render import Renderer, default_intrinsics
+    from cpslam.tools.synth.scene import build_scene
+    from cpslam.tools.synth.trajectory import plan_trajectories
 
     world = build_scene("apartment", 0)
     truth = plan_trajectories(world, 2, FRAMES, False, 0)

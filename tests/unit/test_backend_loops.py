@@ -44,9 +44,9 @@ def rotation_deg(R: np.ndarray) -> float:
 def scenario() -> dict:
     """A closed loop in the synthetic room: true poses in the agent's own world (its first
     camera), drifted reported poses, keyframe images and planted descriptors."""
-    from cpslam.common.synth.render import Renderer, default_intrinsics
-    from cpslam.common.synth.scene import build_scene
-    from cpslam.common.synth.trajectory import plan_trajectories
+    from cpslam.tools.synth.render import Renderer, default_intrinsics
+    from cpslam.tools.synth.scene import build_scene
+    from cpslam.tools.synth.trajectory import plan_trajectories
 
     world = build_scene("room", 0)
     gt = plan_trajectories(world, 1, FRAMES, True, 0)[0]

@@ -500,7 +500,7 @@ def test_info_camera_overrides_from_the_command_line(tmp_path) -> None:
     from typer.testing import CliRunner
 
     from cpslam.common.datasets.cli import info
-    from cpslam.common.synth import generate
+    from cpslam.tools.synth import generate
 
     out = generate(tmp_path / "s", frames=3, width=64, height=48)
     app = typer.Typer()

@@ -7,7 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cpslam.common.eval import (
+from cpslam.common.geometry import se3_exp, so3_exp
+from cpslam.common.trajectory import read_tum, write_tum
+from cpslam.tools.eval import (
     align,
     apply_alignment,
     associate,
@@ -17,8 +19,6 @@ from cpslam.common.eval import (
     locate_trajectory,
     umeyama,
 )
-from cpslam.common.geometry import se3_exp, so3_exp
-from cpslam.common.trajectory import read_tum, write_tum
 
 
 def random_trajectory(n: int, seed: int, fps: float = 30.0) -> tuple[np.ndarray, np.ndarray]:

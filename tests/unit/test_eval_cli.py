@@ -10,11 +10,11 @@ import pytest
 import typer
 from typer.testing import CliRunner
 
-from cpslam.common.eval import evaluate_ate, joint_ate
-from cpslam.common.eval.cli import ate
-from cpslam.common.eval.plot import plot_ate, top_view_axes
 from cpslam.common.geometry import se3_exp
 from cpslam.common.trajectory import write_tum
+from cpslam.tools.eval import evaluate_ate, joint_ate
+from cpslam.tools.eval.cli import ate
+from cpslam.tools.eval.plot import plot_ate, top_view_axes
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cpslam.common.eval import evaluate_rpe
 from cpslam.common.geometry import se3_exp
+from cpslam.tools.eval import evaluate_rpe
 
 
 def _walk(n: int = 40) -> tuple[np.ndarray, np.ndarray]:

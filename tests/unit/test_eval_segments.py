@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cpslam.common.eval import evaluate_ate, reference_jumps, segmented_ate
 from cpslam.common.geometry import se3_exp
+from cpslam.tools.eval import evaluate_ate, reference_jumps, segmented_ate
 
 
 def _walk(n: int, speed: np.ndarray) -> np.ndarray:

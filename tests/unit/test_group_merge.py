@@ -82,9 +82,9 @@ class OnePair:
 @pytest.fixture(scope="module")
 def scene() -> dict:
     """Both agents' fitted maps in their own worlds, and the true scene."""
-    from cpslam.common.synth.render import Renderer, default_intrinsics
-    from cpslam.common.synth.scene import build_scene
-    from cpslam.common.synth.trajectory import plan_trajectories
+    from cpslam.tools.synth.render import Renderer, default_intrinsics
+    from cpslam.tools.synth.scene import build_scene
+    from cpslam.tools.synth.trajectory import plan_trajectories
 
     before = torch.get_num_threads()
     torch.set_num_threads(1)

@@ -253,7 +253,7 @@ def test_real_descriptor_finds_the_loop_closure(tmp_path):
     best candidate is the first keyframe (the camera is back where it started)."""
     from cpslam.agent.descriptor import DescriptorExtractor
     from cpslam.common.datasets import open_sequence
-    from cpslam.common.synth import generate
+    from cpslam.tools.synth import generate
 
     generate(tmp_path / "loop", scene="room", loop=True, frames=120, width=160, height=120,
              seed=2)

@@ -1,4 +1,4 @@
-"""TSDF meshes (`cpslam.common.mesh`): fusion accuracy on synthetic data, I/O, sampling."""
+"""TSDF meshes (`cpslam.tools.mesh`): fusion accuracy on synthetic data, I/O, sampling."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ import pytest
 
 from cpslam.common.camera import Intrinsics
 from cpslam.common.datasets import open_sequence
-from cpslam.common.eval.recon import Frustum, evaluate_recon
-from cpslam.common.mesh import (
+from cpslam.tools.eval.recon import Frustum, evaluate_recon
+from cpslam.tools.mesh import (
     mesh_from_renders,
     read_mesh,
     reference_mesh_from_ground_truth,
@@ -27,7 +27,7 @@ KITCHEN = DATA / "7scenes-kitchen-0-299"
 
 @pytest.fixture(scope="module")
 def synth(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from cpslam.common.synth import generate
+    from cpslam.tools.synth import generate
 
     out = tmp_path_factory.mktemp("synth")
     generate(out, frames=12, width=160, height=120, seed=3)

@@ -17,7 +17,7 @@ else:  # pragma: no cover
 
 ROOT = Path(__file__).resolve().parents[2]
 TOP = {"cpslam": "cpslam", "agent": "cpslam.agent", "server": "cpslam.server",
-       "common": "cpslam.common", "protocol": "cpslam.protocol"}
+       "common": "cpslam.common", "protocol": "cpslam.protocol", "cpslam/tools": "cpslam.tools"}
 
 
 def _declared() -> set[str]:
@@ -36,10 +36,13 @@ def test_every_package_folder_is_declared() -> None:
 
 
 def test_declared_packages_exist() -> None:
+    package_dir = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"][
+        "package-dir"]
     for name in _declared():
-        parts = name.split(".")
-        folder = ROOT / parts[1] if len(parts) > 1 else ROOT / "cpslam"
-        folder = folder.joinpath(*parts[2:])
+        # the longest mapped prefix decides the folder: cpslam.agent.x is agent/x, while
+        # cpslam.tools.x (unmapped) is cpslam/tools/x
+        prefix = max((p for p in package_dir if name == p or name.startswith(p + ".")), key=len)
+        folder = ROOT.joinpath(package_dir[prefix], *name[len(prefix):].split(".")[1:])
         assert (folder / "__init__.py").is_file(), f"{name}: no {folder}/__init__.py"
 
 
@@ -121,14 +124,18 @@ def test_test_module_names_are_unique() -> None:
             f"{path.relative_to(ROOT)} and {clash.relative_to(ROOT)} share a module name"
 
 
-# docs/architecture.md: protocol <- common <- agent, server; agent and server never import each
-# other, and only the umbrella `cpslam/` (cli, demo, run) may import both. What each folder may
-# import of cpslam (a name or its submodules):
+# docs/architecture.md: protocol <- common <- agent, server <- tools; agent and server never
+# import each other, and only the umbrella `cpslam/` (cli, demo, run) may import both. The
+# offline tools (`cpslam/tools/`) may import the runtime but nothing of the runtime imports
+# them, and they never import the umbrella. What each folder may import of cpslam (a name or
+# its submodules):
 ALLOWED = {
     "protocol": ("cpslam.protocol",),
     "common": ("cpslam.protocol", "cpslam.common"),
     "agent": ("cpslam.protocol", "cpslam.common", "cpslam.agent"),
     "server": ("cpslam.protocol", "cpslam.common", "cpslam.server"),
+    "cpslam/tools": ("cpslam.protocol", "cpslam.common", "cpslam.agent", "cpslam.server",
+                     "cpslam.tools"),
 }
 # The wire contract runs without the heavy runtime (docs/protocol.md, architecture.md).
 FORBIDDEN_LIBRARIES = {"protocol": ("torch", "zenoh")}
@@ -233,3 +240,22 @@ def test_backend_import_check_sees_every_kind_of_import(tmp_path: Path) -> None:
                    "from .. import backend\n"
                    "def f():\n    from cpslam.server import backend\n")
     assert _imports_backend(mod, "cpslam.server.loops") == [3, 4, 6]
+
+
+def test_runtime_never_imports_the_tools(tmp_path: Path) -> None:
+    (tmp_path / "common").mkdir()
+    (tmp_path / "server").mkdir()
+    (tmp_path / "cpslam" / "tools" / "eval").mkdir(parents=True)
+    (tmp_path / "common" / "io.py").write_text(
+        "from cpslam.tools.synth import generate\nfrom cpslam import tools\n")
+    (tmp_path / "server" / "export.py").write_text(
+        "def f():\n    from cpslam.tools.mesh import tsdf_mesh\n")
+    (tmp_path / "cpslam" / "tools" / "eval" / "run.py").write_text(
+        "from cpslam.server.node import ServerNode\nfrom cpslam.agent import node\n"
+        "from cpslam.common.geometry import invert\nfrom ..mesh import read_mesh\n"
+        "from cpslam.demo import demo\n")
+    assert _violations(tmp_path, "common") == [
+        "common/io.py:1 imports cpslam.tools.synth", "common/io.py:2 imports cpslam.tools"]
+    assert _violations(tmp_path, "server") == ["server/export.py:2 imports cpslam.tools.mesh"]
+    assert _violations(tmp_path, "cpslam/tools") == [
+        "cpslam/tools/eval/run.py:5 imports cpslam.demo"]

@@ -1,4 +1,4 @@
-"""Reconstruction metrics (`cpslam.common.eval.recon`) and `cpslam eval recon`."""
+"""Reconstruction metrics (`cpslam.tools.eval.recon`) and `cpslam eval recon`."""
 
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ import typer
 from typer.testing import CliRunner
 
 from cpslam.common.camera import Intrinsics
-from cpslam.common.eval import recon_cli
-from cpslam.common.eval.recon import (
+from cpslam.tools.eval import recon_cli
+from cpslam.tools.eval.recon import (
     DEFAULT_SAMPLES,
     DEFAULT_THRESHOLD,
     Frustum,
@@ -22,8 +22,8 @@ from cpslam.common.eval.recon import (
     depth_l1,
     evaluate_recon,
 )
-from cpslam.common.eval.recon_cli import recon
-from cpslam.common.mesh import write_mesh
+from cpslam.tools.eval.recon_cli import recon
+from cpslam.tools.mesh import write_mesh
 
 N = 40_000  # samples per mesh: enough for stable means, fast on two cores
 
@@ -240,7 +240,7 @@ def test_cli_happy_path(tmp_path: Path, app: typer.Typer) -> None:
 
 
 def test_cli_cull_to_dataset(tmp_path: Path, app: typer.Typer) -> None:
-    from cpslam.common.synth import generate
+    from cpslam.tools.synth import generate
 
     generate(tmp_path / "syn", frames=3, width=64, height=48, seed=1)
     gt = tmp_path / "syn" / "mesh.ply"

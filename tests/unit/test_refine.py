@@ -56,9 +56,9 @@ def image(agent: str, kf: int, rgbd, intr) -> KeyframeImage:
 def scene() -> dict:
     """Agent b's sub-map of a synthetic room (fitted on three views, in b's own world) as the
     registry holds it, and a render function of the true scene."""
-    from cpslam.common.synth.render import Renderer, default_intrinsics
-    from cpslam.common.synth.scene import build_scene
-    from cpslam.common.synth.trajectory import plan_trajectories
+    from cpslam.tools.synth.render import Renderer, default_intrinsics
+    from cpslam.tools.synth.scene import build_scene
+    from cpslam.tools.synth.trajectory import plan_trajectories
 
     before = torch.get_num_threads()
     torch.set_num_threads(1)

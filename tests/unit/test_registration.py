@@ -20,7 +20,7 @@ CENTRE = np.array([3.0, 2.5, 1.3])
 
 def look_at(position: np.ndarray, target: np.ndarray) -> np.ndarray:
     """T_world_cam of a level camera at `position` looking at `target` (z-up world)."""
-    from cpslam.common.synth.trajectory import camera_rotation
+    from cpslam.tools.synth.trajectory import camera_rotation
 
     d = np.asarray(target, float) - np.asarray(position, float)
     T = np.eye(4)
@@ -39,8 +39,8 @@ def orbit(target: np.ndarray, degrees: float, radius: float = 2.3) -> np.ndarray
 @pytest.fixture(scope="session")
 def room():
     """Renderer of the synthetic room (seed 0) at 160x120."""
-    from cpslam.common.synth.render import Renderer, default_intrinsics
-    from cpslam.common.synth.scene import build_scene
+    from cpslam.tools.synth.render import Renderer, default_intrinsics
+    from cpslam.tools.synth.scene import build_scene
 
     return Renderer(build_scene("room", seed=0), default_intrinsics(W, H))
 
@@ -49,7 +49,7 @@ def room():
 def loop_sequence(tmp_path_factory):
     """A short closed synthetic loop in the Replica layout (about 3 s to render)."""
     from cpslam.common.datasets import open_sequence
-    from cpslam.common.synth import generate
+    from cpslam.tools.synth import generate
 
     out = tmp_path_factory.mktemp("synth") / "room_loop"
     generate(out, scene="room", loop=True, frames=60, width=W, height=H, seed=3)
@@ -143,7 +143,7 @@ def test_initial_guess(room):
 
 
 def test_different_cameras(room):
-    from cpslam.common.synth.render import Renderer, default_intrinsics
+    from cpslam.tools.synth.render import Renderer, default_intrinsics
 
     # The dst keyframe comes from an agent with a 320x240 camera.
     big = Renderer(room.scene, default_intrinsics(2 * W, 2 * H))
@@ -238,8 +238,8 @@ def test_real_kitchen_pair(kitchen_path: Path):
 @pytest.fixture(scope="session")
 def room_full():
     """The synthetic room at the cpu preset's processing size, 320x240."""
-    from cpslam.common.synth.render import Renderer, default_intrinsics
-    from cpslam.common.synth.scene import build_scene
+    from cpslam.tools.synth.render import Renderer, default_intrinsics
+    from cpslam.tools.synth.scene import build_scene
 
     return Renderer(build_scene("room", seed=0), default_intrinsics(2 * W, 2 * H))
 

@@ -12,7 +12,7 @@ from rich.console import Console
 
 from cpslam.common.geometry import compose
 from cpslam.common.trajectory import write_tum
-from cpslam.report import build_report, main_group, print_report
+from cpslam.tools.report import build_report, main_group, print_report
 
 
 def _circle(n: int, phase: float) -> np.ndarray:

@@ -12,10 +12,10 @@ import pytest
 from cpslam.common.camera import Intrinsics
 from cpslam.common.datasets import open_sequence
 from cpslam.common.geometry import transform_points
-from cpslam.common.synth.scene import CAMERA_Z, CLEARANCE, build_scene
-from cpslam.common.synth.texture import Material, shade
-from cpslam.common.synth.trajectory import plan_trajectories
-from cpslam.common.synth.writer import DEPTH_SCALE, generate
+from cpslam.tools.synth.scene import CAMERA_Z, CLEARANCE, build_scene
+from cpslam.tools.synth.texture import Material, shade
+from cpslam.tools.synth.trajectory import plan_trajectories
+from cpslam.tools.synth.writer import DEPTH_SCALE, generate
 
 pytest.importorskip("open3d")
 
@@ -35,7 +35,7 @@ def _files_digest(root: Path) -> dict[str, str]:
 
 @pytest.fixture(scope="module")
 def renderers():
-    from cpslam.common.synth.render import Renderer, default_intrinsics
+    from cpslam.tools.synth.render import Renderer, default_intrinsics
 
     return {name: Renderer(build_scene(name, 3), default_intrinsics(160, 120))
             for name in ("room", "apartment")}
@@ -76,7 +76,7 @@ def test_textures_vary_and_filter_to_mean():
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_free_zones_keep_clearance(seed):
     """Any camera in a room's free zone at camera height is CLEARANCE from every surface."""
-    from cpslam.common.synth.render import Renderer, default_intrinsics
+    from cpslam.tools.synth.render import Renderer, default_intrinsics
 
     for name in ("room", "apartment"):
         scene = build_scene(name, seed)
@@ -223,7 +223,7 @@ def test_written_depth_lands_on_written_mesh(collection):
     the dataset loader, back-project onto OUT/mesh.ply (not just onto the in-memory scene)."""
     import open3d as o3d
 
-    from cpslam.common.mesh import read_mesh
+    from cpslam.tools.mesh import read_mesh
 
     mesh = o3d.t.geometry.TriangleMesh.from_legacy(read_mesh(collection / "mesh.ply"))
     surface = o3d.t.geometry.RaycastingScene()
@@ -244,7 +244,7 @@ def test_cli_synth(tmp_path):
     import typer
     from typer.testing import CliRunner
 
-    from cpslam.common.synth.cli import synth
+    from cpslam.tools.synth.cli import synth
 
     app = typer.Typer()
     app.command()(synth)

@@ -16,9 +16,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cpslam.common.synth.builder import MeshBuilder
-from cpslam.common.synth.furniture import Furnisher, Piece, WallFrame
-from cpslam.common.synth.texture import Material, MaterialTable, hsv
+from cpslam.tools.synth.builder import MeshBuilder
+from cpslam.tools.synth.furniture import Furnisher, Piece, WallFrame
+from cpslam.tools.synth.texture import Material, MaterialTable, hsv
 
 SCENES = ("room", "apartment")
 

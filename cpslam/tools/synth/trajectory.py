@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.interpolate import PchipInterpolator
 
-from cpslam.common.synth.scene import CAMERA_Z, Room, Scene
+from cpslam.tools.synth.scene import CAMERA_Z, Room, Scene
 
 V_MAX = 0.01  # metres per frame
 W_MAX = np.radians(1.0)  # radians per frame

@@ -11,8 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cpslam.common.synth.builder import MeshBuilder
-from cpslam.common.synth.texture import MaterialTable, hsv
+from cpslam.tools.synth.builder import MeshBuilder
+from cpslam.tools.synth.texture import MaterialTable, hsv
 
 Rect = tuple[float, float, float, float]  # x0, y0, x1, y1 on the floor
 

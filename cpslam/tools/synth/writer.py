@@ -25,10 +25,10 @@ import numpy as np
 import yaml
 
 from cpslam.common.logs import progress
-from cpslam.common.synth.render import Renderer, default_intrinsics, kinect_noise
-from cpslam.common.synth.scene import SCENES, Scene, build_scene
-from cpslam.common.synth.texture import shade
-from cpslam.common.synth.trajectory import MAX_AGENTS, check_clearance, plan_trajectories
+from cpslam.tools.synth.render import Renderer, default_intrinsics, kinect_noise
+from cpslam.tools.synth.scene import SCENES, Scene, build_scene
+from cpslam.tools.synth.texture import shade
+from cpslam.tools.synth.trajectory import MAX_AGENTS, check_clearance, plan_trajectories
 
 logger = logging.getLogger(__name__)
 
@@ -217,7 +217,7 @@ def _summary(world: Scene, args: dict, camera: dict, poses: list[np.ndarray]) ->
         return round(float(x), 4)
 
     return {
-        "generator": "cpslam.common.synth",
+        "generator": "cpslam.tools.synth",
         "format_version": 1,
         "scene": world.name,
         "seed": world.seed,

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cpslam.common.eval.ate import DEFAULT_MAX_DT, AteResult, evaluate_ate, rotation_angle_deg
+from cpslam.tools.eval.ate import DEFAULT_MAX_DT, AteResult, evaluate_ate, rotation_angle_deg
 
 __all__ = ["SegmentedAte", "reference_jumps", "segmented_ate"]
 

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cpslam.common.eval.ate import (
+from cpslam.tools.eval.ate import (
     DEFAULT_MAX_DT,
     _check_trajectory,
     associate,

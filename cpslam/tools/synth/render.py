@@ -14,10 +14,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from cpslam.common.camera import Intrinsics
-from cpslam.common.synth.texture import shade
+from cpslam.tools.synth.texture import shade
 
 if TYPE_CHECKING:
-    from cpslam.common.synth.scene import Scene
+    from cpslam.tools.synth.scene import Scene
 
 # Kinect-like sensor limits (metres) and noise: sigma(z) = a + b (z - z0)^2.
 MIN_RANGE = 0.3

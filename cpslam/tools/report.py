@@ -13,8 +13,8 @@ origin-aligned (the paper's protocol); *global* is every agent's trajectory in i
 frame under ONE se3 alignment fitted to all agents together (per agent: its share of that
 joint fit), so an agent whose frame was never aligned with the others shows a large value.
 
-Mesh: TSDF fusion (`cpslam.common.mesh.tsdf_mesh`, open3d ``VoxelBlockGrid``) of depth and
-colour rendered (`cpslam.common.render.render_views`) from the server's final fused map with
+Mesh: TSDF fusion (`cpslam.tools.mesh.tsdf_mesh`, open3d ``VoxelBlockGrid``) of depth and
+colour rendered (`cpslam.tools.render.render_views`) from the server's final fused map with
 the main group's decoders, at the global poses of the group's agents.
 """
 
@@ -119,7 +119,7 @@ def main_group(metrics: dict) -> str | None:
 def write_plots(folder: Path, joint: Any, local: dict[str, Any]) -> list[Path]:
     """Top views against ground truth and error over time, one colour per agent: the global
     trajectories under their joint alignment, and each local one origin-aligned."""
-    from cpslam.common.eval.plot import plot_ate
+    from cpslam.tools.eval.plot import plot_ate
 
     ids = list(local)
     return [
@@ -141,8 +141,8 @@ def fused_mesh(run: Path, max_views: int = 40, voxel_size: float = 0.03,
     from cpslam.common.field import NeuralPointMap
     from cpslam.common.field_config import field_spec
     from cpslam.common.logs import progress
-    from cpslam.common.mesh import tsdf_mesh, write_mesh
-    from cpslam.common.render import STATE_FILE, RunModel, render_views
+    from cpslam.tools.mesh import tsdf_mesh, write_mesh
+    from cpslam.tools.render import STATE_FILE, RunModel, render_views
 
     t0 = time.perf_counter()
     metrics = _read_json(run / "metrics.json") or {}
@@ -263,7 +263,7 @@ def _traffic_table(traffic: dict[str, Any]) -> Any:
 def _evaluate(report: dict, est: dict, sequences: dict[str, Path]) -> tuple | None:
     """Fill the ATE fields; returns (joint result, local results) for the plots, or None
     when an agent has no ground truth or no trajectory."""
-    from cpslam.common.eval import evaluate_ate, joint_ate, load_trajectory
+    from cpslam.tools.eval import evaluate_ate, joint_ate, load_trajectory
 
     ids = list(report["agents"])
     if not ids or any(a not in sequences or not est[a]["global"] for a in ids):

@@ -123,7 +123,7 @@ def write_renders(
     import yaml
 
     from cpslam.common.logs import progress
-    from cpslam.common.synth.writer import DEPTH_SCALE, write_frame
+    from cpslam.tools.synth.writer import DEPTH_SCALE, write_frame
 
     results = out / "results"
     results.mkdir(parents=True, exist_ok=True)
@@ -179,8 +179,8 @@ def render(
       cpslam render runs/office --agent robot-2 --every 10
     """
     from cpslam.common.device import resolve_device
-    from cpslam.common.eval.source import load_trajectory
     from cpslam.protocol import ProtocolError, keys
+    from cpslam.tools.eval.source import load_trajectory
 
     try:
         keys.check_id(agent, "--agent")

@@ -42,7 +42,7 @@ def synth(
 
       cpslam dataset synth --frames 60 --width 160 --height 120 --noise --out data/noisy
     """
-    from cpslam.common.synth.writer import generate
+    from cpslam.tools.synth.writer import generate
 
     try:
         result = generate(out, scene=scene, agents=agents, frames=frames, width=width,

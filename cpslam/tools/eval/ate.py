@@ -14,10 +14,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from cpslam.common.eval.align import ALIGN_MODES, MIN_PAIRS, apply_alignment, similarity_matrix
-from cpslam.common.eval.align import align as fit_alignment
 from cpslam.common.geometry import so3_log
 from cpslam.common.trajectory import Trajectory
+from cpslam.tools.eval.align import ALIGN_MODES, MIN_PAIRS, apply_alignment, similarity_matrix
+from cpslam.tools.eval.align import align as fit_alignment
 
 logger = logging.getLogger(__name__)
 
@@ -43,7 +43,7 @@ def evaluate_ate(
     """ATE of ``est_poses`` against ``gt_poses`` (both ``T_world_cam [N, 4, 4]``).
 
     Poses are associated by nearest timestamp within ``max_dt`` seconds (one-to-one), the
-    estimate is aligned with ``align`` (see ``cpslam.common.eval.align``), and the position
+    estimate is aligned with ``align`` (see ``cpslam.tools.eval.align``), and the position
     errors of the pairs are summarised. ``gt_name``/``est_name`` (for example file paths)
     appear in error messages.
     """

@@ -31,7 +31,7 @@ from scipy.spatial import cKDTree
 
 from cpslam.common.camera import Intrinsics
 from cpslam.common.geometry import invert
-from cpslam.common.mesh import sample_surface
+from cpslam.tools.mesh import sample_surface
 
 logger = logging.getLogger(__name__)
 

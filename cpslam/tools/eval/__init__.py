@@ -1,12 +1,12 @@
 """Trajectory evaluation: association, alignment, absolute trajectory error (ATE) and relative
 pose error (RPE).
 
-Plots live in ``cpslam.common.eval.plot`` and the ``cpslam eval ate`` command in
-``cpslam.common.eval.cli``; both are left out here so importing this package stays light.
+Plots live in ``cpslam.tools.eval.plot`` and the ``cpslam eval ate`` command in
+``cpslam.tools.eval.cli``; both are left out here so importing this package stays light.
 """
 
-from cpslam.common.eval.align import ALIGN_MODES, align, apply_alignment, umeyama
-from cpslam.common.eval.ate import (
+from cpslam.tools.eval.align import ALIGN_MODES, align, apply_alignment, umeyama
+from cpslam.tools.eval.ate import (
     DEFAULT_MAX_DT,
     AteResult,
     JointAteResult,
@@ -14,9 +14,9 @@ from cpslam.common.eval.ate import (
     evaluate_ate,
     joint_ate,
 )
-from cpslam.common.eval.rpe import RpeResult, evaluate_rpe
-from cpslam.common.eval.segments import SegmentedAte, reference_jumps, segmented_ate
-from cpslam.common.eval.source import load_trajectory, locate_trajectory
+from cpslam.tools.eval.rpe import RpeResult, evaluate_rpe
+from cpslam.tools.eval.segments import SegmentedAte, reference_jumps, segmented_ate
+from cpslam.tools.eval.source import load_trajectory, locate_trajectory
 
 __all__ = [
     "ALIGN_MODES",

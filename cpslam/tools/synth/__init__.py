@@ -16,7 +16,7 @@ __all__ = ["SynthResult", "generate"]
 def __getattr__(name: str) -> Any:
     # Lazy, so that importing the CLI command does not pull in scipy and OpenCV.
     if name in __all__:
-        from cpslam.common.synth import writer
+        from cpslam.tools.synth import writer
 
         return getattr(writer, name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -15,11 +15,11 @@ from rich.table import Table
 
 if TYPE_CHECKING:
     from cpslam.common.datasets import RGBDSequence
-    from cpslam.common.eval.recon import Frustum, ReconResult
+    from cpslam.tools.eval.recon import Frustum, ReconResult
 
 logger = logging.getLogger(__name__)
 
-# Mirrors cpslam.common.eval.recon (not imported here: it pulls in open3d, and the CLI
+# Mirrors cpslam.tools.eval.recon (not imported here: it pulls in open3d, and the CLI
 # should list its commands without that cost).
 _DEFAULT_SAMPLES = 200_000
 _DEFAULT_THRESHOLD = 0.05
@@ -91,8 +91,8 @@ def recon(
 
       cpslam eval recon --gt gt.ply --est runs/x/mesh.ply --method surface --json recon.json
     """
-    from cpslam.common.eval.recon import evaluate_recon
-    from cpslam.common.mesh import read_mesh
+    from cpslam.tools.eval.recon import evaluate_recon
+    from cpslam.tools.mesh import read_mesh
 
     try:
         gt_mesh = read_mesh(gt)
@@ -133,7 +133,7 @@ def recon(
 def _frustum(path: Path, frames: str | None, occlusion: bool, depth_max: float) -> Frustum:
     """The cameras of a dataset folder at their ground-truth poses."""
     from cpslam.common.datasets import open_sequence
-    from cpslam.common.eval.recon import Frustum
+    from cpslam.tools.eval.recon import Frustum
 
     seq = open_sequence(path, frames=frames)
     poses = seq.gt_poses()

@@ -14,11 +14,11 @@ from rich.console import Console
 from rich.table import Table
 
 from cpslam.common.datasets.cli import FormatOpt, FramesOpt
-from cpslam.common.eval.ate import DEFAULT_MAX_DT, AteResult, evaluate_ate
-from cpslam.common.eval.rpe import RpeResult, evaluate_rpe
-from cpslam.common.eval.segments import SegmentedAte, reference_jumps, segmented_ate
-from cpslam.common.eval.source import load_trajectory, locate_trajectory
 from cpslam.common.trajectory import Trajectory
+from cpslam.tools.eval.ate import DEFAULT_MAX_DT, AteResult, evaluate_ate
+from cpslam.tools.eval.rpe import RpeResult, evaluate_rpe
+from cpslam.tools.eval.segments import SegmentedAte, reference_jumps, segmented_ate
+from cpslam.tools.eval.source import load_trajectory, locate_trajectory
 
 logger = logging.getLogger(__name__)
 
@@ -144,7 +144,7 @@ def ate(
             json_out.write_text(json.dumps(record, indent=2) + "\n")
             typer.echo(f"wrote {json_out}")
         if plot is not None:
-            from cpslam.common.eval.plot import plot_ate
+            from cpslam.tools.eval.plot import plot_ate
 
             plot_ate(result, plot, title=f"{est_file} vs {gt_file}")
             typer.echo(f"wrote {plot}")

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cpslam.common.eval.ate import AteResult
+from cpslam.tools.eval.ate import AteResult
 
 logger = logging.getLogger(__name__)
 
