@@ -23,7 +23,7 @@ pytest.importorskip("open3d")
 def test_demo_tiny_end_to_end(tmp_path: Path) -> None:
     out = tmp_path / "demo"
     cmd = [sys.executable, "-m", "cpslam", "demo", "--preset", "tiny", "--agents", "2",
-           "--frames", "30", "--width", "160", "--height", "120", "--out", str(out),
+           "--num-frames", "30", "--width", "160", "--height", "120", "--out", str(out),
            "--set", "run.num_threads=auto",
            "--data-dir", str(tmp_path / "data"), "--no-progress", "--timeout", "600"]
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=900,
