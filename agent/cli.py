@@ -69,9 +69,10 @@ def agent(
     map.ply, state.pt (reload with `cpslam render` or `--resume`) and metrics.json (with bytes
     sent per key expression when networked). The effective configuration goes to
     RUN/config.yaml with --standalone, and to RUN/agent_<id>/config.yaml (next to agent.log)
-    when networked, where agents and the server may share RUN. Ctrl-C stops the run and saves
-    what exists. Networked: waits for the server, resends what was not acknowledged after a
-    server restart, exits 0 once everything is acknowledged (3: no server, 4: unacknowledged).
+    when networked, where agents and the server may share RUN; an existing RUN/agent_<id>/ is
+    replaced only with --overwrite. Ctrl-C stops the run and saves what exists. Networked:
+    waits for the server, resends what was not acknowledged after a server restart, exits 0
+    once everything is acknowledged (3: no server, 4: unacknowledged).
     Torch uses every core this process may use (run.num_threads: auto); beside other busy
     processes on the same cores, give it fewer (--set run.num_threads=1).
 
@@ -114,8 +115,6 @@ def agent(
         fail("--resume works with --standalone only")
     if resume is not None and not resume.is_file():
         fail(f"--resume {resume}: no such file")
-    if out is not None:
-        check_output(out / f"agent_{agent_id}", overwrite)
 
     from cpslam.agent.standalone import open_for_config, run_standalone
 
@@ -125,6 +124,7 @@ def agent(
         fail(str(err))
     threads = configure_torch(cfg.run.num_threads, cfg.run.deterministic)
     run_dir = out if out is not None else create_run_dir(cfg.run.out, cfg.run.name)
+    check_output(run_dir / f"agent_{agent_id}", overwrite)
     run_dir.mkdir(parents=True, exist_ok=True)
     logger.info("agent %s: %s (%s, %d frames) on %s (%d CPU threads) → %s", agent_id, seq,
                 sequence.format, len(sequence), torch_device, threads, run_dir)

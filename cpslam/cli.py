@@ -26,11 +26,16 @@ app = App(
     "cpslam-agent (one agent on one sequence); each has --help. Flags, exit codes and the "
     "overwrite rule: docs/cli.md.",
 )
-dataset_app = App(no_args_is_help=True, help="Inspect and generate RGB-D sequences.")
-eval_app = App(no_args_is_help=True, help="Evaluate trajectories against ground truth.")
+dataset_app = App(no_args_is_help=True, help="Inspect and generate RGB-D sequences.\n\n"
+                  "Examples:\n\n  cpslam dataset info runs/data/room/agent_0 --json\n\n"
+                  "  cpslam dataset synth --scene room --loop --out runs/data/room")
+eval_app = App(no_args_is_help=True, help="Evaluate trajectories against ground truth.\n\n"
+               "Examples:\n\n  cpslam eval ate --gt runs/data/room/agent_0 --est runs/room\n\n"
+               "  cpslam eval recon --gt data/synth/mesh.ply --est runs/x/mesh.ply --json")
 app.add_typer(dataset_app, name="dataset")
 app.add_typer(eval_app, name="eval")
-config_app = App(no_args_is_help=True, help="Show the effective configuration and presets.")
+config_app = App(no_args_is_help=True, help="Show the effective configuration and presets.\n\n"
+                 "Examples:\n\n  cpslam config show --preset paper\n\n  cpslam config presets")
 app.add_typer(config_app, name="config")
 
 dataset_app.command("info")(dataset_info)

@@ -262,8 +262,6 @@ def run(
     from cpslam.common.device import configure_torch, resolve_device
     from cpslam.common.rundir import create_run_dir
 
-    if out is not None:
-        check_output(out, overwrite)
     cfg = config_or_exit(preset, config_file, sets, device, seed)
     try:
         torch_device = resolve_device(cfg.run.device)
@@ -280,6 +278,7 @@ def run(
         fail(str(err))
     configure_torch(cfg.run.num_threads, cfg.run.deterministic)
     run_dir = out if out is not None else create_run_dir(cfg.run.out, cfg.run.name)
+    check_output(run_dir, overwrite)
     result = run_collab(cfg, sequences, run_dir, torch_device, show_progress=not no_progress)
     _print_table(result)
 

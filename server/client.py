@@ -32,8 +32,9 @@ def status(
     as_json: JsonOpt = False,
     timeout: TimeoutOpt = 10.0,
 ) -> None:
-    """Print a running server's agents, groups, loops and federated rounds (exit 3 when no
-    server answers within --timeout).
+    """Print a running server's agents, groups, loops and federated rounds.
+
+    Exits 3 when no server answers within --timeout (docs/cli.md, exit codes).
 
     Examples:
 
@@ -79,8 +80,9 @@ def finalise(
         "--wait/--no-wait", help="Wait until the server has finished and left.")] = True,
     timeout: TimeoutOpt = 600.0,
 ) -> None:
-    """Ask a running server to finish: final pose graph, refinement, outputs, exit (exit 3
-    when no server is found).
+    """Ask a running server to finish: final pose graph, refinement, outputs, exit.
+
+    Exits 3 when no server is found, 1 when it is still running after --timeout.
 
     Examples:
 

@@ -133,6 +133,18 @@ def test_status_without_a_server_exits_no_server() -> None:
     assert result.exit_code == ExitCode.NO_SERVER == 3, result.output
 
 
+@pytest.mark.slow
+def test_agent_without_a_server_exits_no_server_too(tmp_path: Path) -> None:
+    from cpslam.demo import free_port, scene_data
+
+    nobody = f"tcp/127.0.0.1:{free_port()}"
+    seq = scene_data(tmp_path, "room", 1, 3, 16, 12, seed=0, show_progress=False)[0]
+    result = runner.invoke(_scripts()["cpslam-agent"], [
+        "--seq", str(seq), "--preset", "tiny", "--connect", nobody, "--wait-timeout", "0.5",
+        "--no-progress", "--out", str(tmp_path / "run"), "-q"])
+    assert result.exit_code == ExitCode.NO_SERVER, result.output
+
+
 def test_existing_outputs_are_replaced_only_with_overwrite(tmp_path: Path) -> None:
     from cpslam.common.trajectory import write_tum
 
