@@ -24,7 +24,7 @@ class ExitCode(IntEnum):
 
     OK = 0
     ERROR = 1
-    """The command started but failed: a child process died, a time-out, a write error."""
+    """The command started but failed: a child process died, a time-out, no endpoint."""
     USAGE = 2
     """Bad arguments or inputs, found before any work (also click's own usage errors)."""
     NO_SERVER = 3
@@ -54,12 +54,12 @@ def fail(message: str, code: ExitCode = ExitCode.USAGE) -> NoReturn:
     raise typer.Exit(int(code))
 
 
-def check_output(path: Path, overwrite: bool, flag: str = "--out") -> None:
+def check_output(path: Path, overwrite: bool) -> None:
     """The overwrite rule: an existing file or non-empty folder at `path` is an error (exit 2,
     before any work) unless `overwrite`."""
     exists = path.is_file() or (path.is_dir() and any(path.iterdir()))
     if exists and not overwrite:
-        fail(f"{flag} {path} already exists; pass --overwrite to replace it")
+        fail(f"{path} already exists; pass --overwrite to replace it")
 
 
 _VERBOSITY = "cpslam.verbosity"

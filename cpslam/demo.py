@@ -91,7 +91,7 @@ def prepare_run_dir(run: Path, overwrite: bool = False) -> None:
             raise FileExistsError(f"{run}: exists and is not an earlier demo's folder; choose "
                                   "another --out or remove it")
         if not overwrite:
-            raise FileExistsError(f"--out {run} already exists; pass --overwrite to replace it")
+            raise FileExistsError(f"{run} already exists; pass --overwrite to replace it")
         shutil.rmtree(run)
     run.mkdir(parents=True)
 

@@ -106,9 +106,9 @@ def ate(
 
       cpslam eval ate --gt ../shared/data/7scenes-kitchen-0-299 --est runs/kitchen --pieces
     """
-    for path, flag in ((out, "--out"), (plot, "--plot")):
+    for path in (out, plot):
         if path is not None:
-            check_output(path, overwrite, flag)
+            check_output(path, overwrite)
     try:
         gt_kind, gt_file = locate_trajectory(gt)
         est_kind, est_file = locate_trajectory(est)
