@@ -88,6 +88,13 @@ def test_shared_flags_mean_what_docs_cli_says() -> None:
         assert {c for c, _, _ in table[name]} == every, name
 
 
+def test_docs_cli_lists_every_shared_flag() -> None:
+    text = (Path(__file__).resolve().parents[2] / "docs" / "cli.md").read_text()
+    shared = [name for name, uses in _options().items() if len({c for c, _, _ in uses}) > 1]
+    missing = [name for name in shared if f"`{name}" not in text]
+    assert not missing, f"docs/cli.md does not list {missing}"
+
+
 @pytest.mark.parametrize("script", ["cpslam", "cpslam-agent", "cpslam-server"])
 def test_version_on_every_entry_point(script: str) -> None:
     from cpslam import __version__
