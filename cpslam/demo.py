@@ -182,7 +182,7 @@ def demo(
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     env.setdefault("OMP_NUM_THREADS", "1")
     deadline = t0 + timeout if timeout else None
-    code = 0
+    code = ExitCode.OK
     # SIGTERM (a CI cancelling us, `kill`) stops the children like Ctrl-C does.
     try:
         previous = signal.signal(signal.SIGTERM, _interrupt)
