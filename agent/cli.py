@@ -8,6 +8,7 @@ from typing import Annotated
 
 import typer
 
+from cpslam.common.cli import App, ExitCode, OverwriteOpt, check_output, fail, out_option
 from cpslam.common.config.cli import (
     ConfigOpt,
     ConnectOpt,
@@ -17,14 +18,16 @@ from cpslam.common.config.cli import (
     SessionOpt,
     SetOpt,
 )
+from cpslam.common.datasets.cli import FormatOpt, FramesOpt
 
 logger = logging.getLogger("cpslam.agent")
 
-app = typer.Typer(add_completion=False, context_settings={"help_option_names": ["-h", "--help"]})
+app = App()
 
 
 @app.command()
 def agent(
+    ctx: typer.Context,
     seq: Annotated[Path, typer.Option("--seq", help="Sequence folder (any supported format).")],
     standalone: Annotated[
         bool, typer.Option("--standalone", help="Run without a server (odometry and mapping only).")
@@ -36,7 +39,8 @@ def agent(
     session: SessionOpt = None,
     wait_timeout: Annotated[
         float, typer.Option("--wait-timeout", min=0.0,
-                            help="Seconds to wait for the server before giving up (exit 3).")
+                            help="Seconds to wait for the server before giving up (exit 3: "
+                            "no server).")
     ] = 300.0,
     ack_timeout: Annotated[
         float, typer.Option("--ack-timeout", min=0.0, help="Seconds to wait at the end for the "
@@ -47,22 +51,16 @@ def agent(
     sets: SetOpt = None,
     device: DeviceOpt = None,
     seed: SeedOpt = None,
-    frames: Annotated[
-        str | None, typer.Option("--frames", help="START:STOP[:STEP] of the sequence.")
-    ] = None,
-    fmt: Annotated[
-        str | None,
-        typer.Option("--format", help="replica, tum, 7scenes or scannet (default: detect)."),
-    ] = None,
-    out: Annotated[
-        Path | None,
-        typer.Option("--out", help="Run folder (default: run.out/run.name, timestamped)."),
-    ] = None,
+    frames: FramesOpt = None,
+    fmt: FormatOpt = None,
+    out: Annotated[Path | None, out_option(
+        "Run folder, may be shared with the server and other agents (default: "
+        "run.out/run.name, timestamped); RUN/agent_<id>/ follows the overwrite rule.")] = None,
+    overwrite: OverwriteOpt = False,
     resume: Annotated[
         Path | None, typer.Option("--resume", help="state.pt of an earlier run to continue from.")
     ] = None,
     no_progress: Annotated[bool, typer.Option("--no-progress", help="No progress bar.")] = False,
-    verbose: Annotated[int, typer.Option("--verbose", "-v", count=True)] = 0,
 ) -> None:
     """Track the camera of one RGB-D sequence, build its neural point map, and (unless
     --standalone) stream it to a cpslam-server that merges it with other agents' maps.
@@ -71,9 +69,10 @@ def agent(
     map.ply, state.pt (reload with `cpslam render` or `--resume`) and metrics.json (with bytes
     sent per key expression when networked). The effective configuration goes to
     RUN/config.yaml with --standalone, and to RUN/agent_<id>/config.yaml (next to agent.log)
-    when networked, where agents and the server may share RUN. Ctrl-C stops the run and saves
-    what exists. Networked: waits for the server, resends what was not acknowledged after a
-    server restart, exits 0 once everything is acknowledged (3: no server, 4: unacknowledged).
+    when networked, where agents and the server may share RUN; an existing RUN/agent_<id>/ is
+    replaced only with --overwrite. Ctrl-C stops the run and saves what exists. Networked:
+    waits for the server, resends what was not acknowledged after a server restart, exits 0
+    once everything is acknowledged (3: no server, 4: unacknowledged).
     Torch uses every core this process may use (run.num_threads: auto); beside other busy
     processes on the same cores, give it fewer (--set run.num_threads=1).
 
@@ -91,6 +90,7 @@ def agent(
 
       cpslam-agent --seq data/office0 --standalone --preset paper --device cuda
     """
+    from cpslam.common.cli import verbosity
     from cpslam.common.config.cli import config_or_exit, transport_sets
     from cpslam.common.datasets import DatasetError
     from cpslam.common.device import configure_torch, resolve_device
@@ -98,38 +98,33 @@ def agent(
     from cpslam.common.rundir import create_run_dir
     from cpslam.protocol import ProtocolError, keys
 
-    setup_logging(max(verbose, 1), daemon=not standalone)
+    setup_logging(verbosity(ctx), daemon=not standalone, info=True)
     try:
         keys.check_id(agent_id, "--agent-id")
     except ProtocolError as err:
-        typer.echo(f"error: {err}", err=True)
-        raise typer.Exit(2) from None
+        fail(str(err))
     if standalone and (connect or session):
-        typer.echo("error: --connect/--session make no sense with --standalone", err=True)
-        raise typer.Exit(2)
+        fail("--connect/--session make no sense with --standalone")
     cfg = config_or_exit(preset, config_file, [*(sets or []), *transport_sets(
         session, None, connect)], device, seed)
     try:
         torch_device = resolve_device(cfg.run.device)
     except ValueError as err:
-        typer.echo(f"error: {err}", err=True)
-        raise typer.Exit(2) from None
+        fail(str(err))
     if resume is not None and not standalone:
-        typer.echo("error: --resume works with --standalone only", err=True)
-        raise typer.Exit(2)
+        fail("--resume works with --standalone only")
     if resume is not None and not resume.is_file():
-        typer.echo(f"error: --resume {resume}: no such file", err=True)
-        raise typer.Exit(2)
+        fail(f"--resume {resume}: no such file")
 
     from cpslam.agent.standalone import open_for_config, run_standalone
 
     try:
         sequence = open_for_config(cfg, seq, fmt, frames)
     except DatasetError as err:
-        typer.echo(f"error: {err}", err=True)
-        raise typer.Exit(2) from None
+        fail(str(err))
     threads = configure_torch(cfg.run.num_threads, cfg.run.deterministic)
     run_dir = out if out is not None else create_run_dir(cfg.run.out, cfg.run.name)
+    check_output(run_dir / f"agent_{agent_id}", overwrite)
     run_dir.mkdir(parents=True, exist_ok=True)
     logger.info("agent %s: %s (%s, %d frames) on %s (%d CPU threads) → %s", agent_id, seq,
                 sequence.format, len(sequence), torch_device, threads, run_dir)
@@ -141,7 +136,7 @@ def agent(
     typer.echo(f"{result.frames_done}/{result.frames_total} frames in {result.wall_time_s:.1f} s "
                f"→ {result.agent_dir}")
     if result.interrupted:
-        raise typer.Exit(130)
+        raise typer.Exit(ExitCode.INTERRUPTED)
 
 
 def _networked(cfg, sequence, agent_id: str, run_dir: Path, device: str, wait_timeout: float,
@@ -160,7 +155,7 @@ def _networked(cfg, sequence, agent_id: str, run_dir: Path, device: str, wait_ti
 
     def handler(signum: int, _frame: object) -> None:
         if stop.is_set():
-            raise SystemExit(130)
+            raise SystemExit(ExitCode.INTERRUPTED)
         logger.info("%s: stopping after this frame (again to exit at once)",
                     signal.Signals(signum).name)
         stop.set()

@@ -12,9 +12,9 @@
 5. At the end: send the last frame poses and wait until everything is acknowledged, then
    write ``RUN/agent_<id>/`` (as a standalone run, plus bytes sent per key expression).
 
-Exit codes: 0 done and acknowledged, 3 no server within ``wait_timeout_s``, 4 the server did
-not acknowledge everything within ``ack_timeout_s`` (outputs are written all the same),
-130 interrupted (outputs written once streaming has begun).
+Exit codes (`cpslam.common.cli.ExitCode`): 0 done and acknowledged, 3 no server within
+``wait_timeout_s``, 4 the server did not acknowledge everything within ``ack_timeout_s``
+(outputs are written all the same), 130 interrupted (outputs written once streaming has begun).
 """
 
 from __future__ import annotations
@@ -27,6 +27,7 @@ from typing import TYPE_CHECKING
 
 from cpslam.common.bus import open_client
 from cpslam.common.bus.factory import ANNOUNCE_AFTER_S, STOP_CHECK_S
+from cpslam.common.cli import ExitCode
 from cpslam.protocol import keys
 
 if TYPE_CHECKING:
@@ -35,14 +36,10 @@ if TYPE_CHECKING:
     from cpslam.common.config import CpslamConfig
     from cpslam.common.datasets import RGBDSequence
 
-__all__ = ["EXIT_INTERRUPTED", "EXIT_NO_SERVER", "EXIT_UNACKED", "ServerPresence",
-           "run_networked"]
+__all__ = ["ServerPresence", "run_networked"]
 
 logger = logging.getLogger(__name__)
 
-EXIT_NO_SERVER = 3
-EXIT_UNACKED = 4
-EXIT_INTERRUPTED = 130
 
 class ServerPresence:
     """Tracks the server's liveliness token; counts how often it (re)appeared."""
@@ -93,8 +90,8 @@ def run_networked(cfg: CpslamConfig, seq: RGBDSequence, agent_id: str, run_dir: 
     if bus is None:
         if stop.is_set():
             logger.info("agent %s: interrupted while waiting for the server", agent_id)
-            return EXIT_INTERRUPTED
-        return EXIT_NO_SERVER
+            return ExitCode.INTERRUPTED
+        return ExitCode.NO_SERVER
     with bus:
         presence = ServerPresence(bus, cfg.transport.session)
         t_wait = time.monotonic()
@@ -108,10 +105,10 @@ def run_networked(cfg: CpslamConfig, seq: RGBDSequence, agent_id: str, run_dir: 
             presence.close()
             if stop.is_set():
                 logger.info("agent %s: interrupted while waiting for the server", agent_id)
-                return EXIT_INTERRUPTED
+                return ExitCode.INTERRUPTED
             logger.error("agent %s: connected, but no cpslam-server on session %r within %.0f s",
                          agent_id, cfg.transport.session, wait_timeout_s)
-            return EXIT_NO_SERVER
+            return ExitCode.NO_SERVER
         logger.info("agent %s: server found (%.1f s); streaming %d frames", agent_id,
                     time.monotonic() - t_wait, len(seq))
         node = AgentNode(cfg, seq, bus, agent_id, run_dir, device).start()
@@ -142,11 +139,11 @@ def run_networked(cfg: CpslamConfig, seq: RGBDSequence, agent_id: str, run_dir: 
             node.close()
             presence.close()
     if interrupted or stop.is_set():
-        return EXIT_INTERRUPTED
+        return ExitCode.INTERRUPTED
     if not acked:
         logger.error("agent %s: %d messages were never acknowledged", agent_id,
                      len(node.link.outbox))
-        return EXIT_UNACKED
+        return ExitCode.UNACKNOWLEDGED
     logger.info("agent %s: done, everything acknowledged", agent_id)
     return 0
 

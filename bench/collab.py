@@ -14,7 +14,7 @@ bound), and for a loop within one agent the error of the odometry over the same 
 `--real`: ../shared/data/7scenes-kitchen-0-299 as two agents (frames 0-149 and 150-299: the
 second starts where the first ends, in a frame of its own) and as one agent with loops.
 
-Two-agent part: `cpslam dataset synth --scene apartment --agents 2 --frames N` (320x240,
+Two-agent part: `cpslam dataset synth --scene apartment --agents 2 --num-frames N` (320x240,
 cached under runs/bench-data/), `cpslam run` with the preset; reports whether and when the
 agents merged, the joint se3 ATE of both global trajectories (one alignment for both), each
 agent's origin-aligned ATE (the paper's), the same without any pose-graph correction (odometry

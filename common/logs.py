@@ -20,18 +20,21 @@ from rich.progress import (
 
 T = TypeVar("T")
 
-_LEVELS = {0: logging.WARNING, 1: logging.INFO}
+_LEVELS = {-1: logging.ERROR, 0: logging.WARNING, 1: logging.INFO}
 
 
-def setup_logging(verbosity: int = 0, daemon: bool = False) -> None:
+def setup_logging(verbosity: int = 0, daemon: bool = False, info: bool | None = None) -> None:
     """Configure the root logger once.
 
-    verbosity 0 shows warnings, 1 info, 2 or more debug. Daemons log info by default and use
-    plain timestamped lines (they end up in files and journals); interactive commands use rich.
+    `verbosity` is -v minus -q: 0 shows warnings, 1 info, 2 or more debug, -1 or less errors
+    only. Commands that log info by default (`info`; daemons always) start one step up: -v
+    changes nothing there, -q drops to warnings. Daemons use plain timestamped lines (they end
+    up in files and journals); interactive commands use rich.
     """
-    level = _LEVELS.get(verbosity, logging.DEBUG)
+    if daemon if info is None else info:
+        verbosity = max(verbosity, 1) if verbosity >= 0 else verbosity + 1
+    level = _LEVELS.get(max(verbosity, -1), logging.DEBUG)
     if daemon:
-        level = min(level, logging.INFO)
         handler: logging.Handler = logging.StreamHandler()
         handler.setFormatter(
             logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s", "%H:%M:%S")

@@ -7,13 +7,10 @@ is only registered here, so that this file stays a table of contents. Heavy libr
 
 from __future__ import annotations
 
-import typer
-
-from cpslam import __version__
+from cpslam.common.cli import App
 from cpslam.common.config.cli import presets as config_presets
 from cpslam.common.config.cli import show as config_show
 from cpslam.common.datasets.cli import info as dataset_info
-from cpslam.common.logs import setup_logging
 from cpslam.demo import demo
 from cpslam.run import run as run_command
 from cpslam.server.client import finalise as server_finalise
@@ -23,17 +20,22 @@ from cpslam.tools.eval.recon_cli import recon as eval_recon
 from cpslam.tools.render import render
 from cpslam.tools.synth.cli import synth as dataset_synth
 
-app = typer.Typer(
+app = App(
     no_args_is_help=True,
-    add_completion=False,
-    help="cpslam — collaborative neural point-based RGB-D SLAM.",
-    context_settings={"help_option_names": ["-h", "--help"]},
+    epilog="The daemons are separate commands: cpslam-server (the collaboration back end) and "
+    "cpslam-agent (one agent on one sequence); each has --help. Flags, exit codes and the "
+    "overwrite rule: docs/cli.md.",
 )
-dataset_app = typer.Typer(no_args_is_help=True, help="Inspect and generate RGB-D sequences.")
-eval_app = typer.Typer(no_args_is_help=True, help="Evaluate trajectories against ground truth.")
+dataset_app = App(no_args_is_help=True, help="Inspect and generate RGB-D sequences.\n\n"
+                  "Examples:\n\n  cpslam dataset info runs/data/room/agent_0 --json\n\n"
+                  "  cpslam dataset synth --scene room --loop --out runs/data/room")
+eval_app = App(no_args_is_help=True, help="Evaluate trajectories against ground truth.\n\n"
+               "Examples:\n\n  cpslam eval ate --gt runs/data/room/agent_0 --est runs/room\n\n"
+               "  cpslam eval recon --gt data/synth/mesh.ply --est runs/x/mesh.ply --json")
 app.add_typer(dataset_app, name="dataset")
 app.add_typer(eval_app, name="eval")
-config_app = typer.Typer(no_args_is_help=True, help="Show the effective configuration and presets.")
+config_app = App(no_args_is_help=True, help="Show the effective configuration and presets.\n\n"
+                 "Examples:\n\n  cpslam config show --preset paper\n\n  cpslam config presets")
 app.add_typer(config_app, name="config")
 
 dataset_app.command("info")(dataset_info)
@@ -49,20 +51,20 @@ app.command("finalise")(server_finalise)
 config_app.command("presets")(config_presets)
 
 
-def _version(value: bool) -> None:
-    if value:
-        typer.echo(f"cpslam {__version__}")
-        raise typer.Exit()
-
-
 @app.callback()
-def _root(
-    verbose: int = typer.Option(0, "--verbose", "-v", count=True, help="More log output (-vv)."),
-    version: bool = typer.Option(
-        False, "--version", callback=_version, is_eager=True, help="Print the version."
-    ),
-) -> None:
-    setup_logging(verbose)
+def _root() -> None:
+    """cpslam — collaborative neural point-based RGB-D SLAM.
+
+    Examples:
+
+      cpslam demo
+
+      cpslam dataset synth --scene room --loop --out runs/data/room
+
+      cpslam run --seq runs/data/room/agent_0 -v
+
+      cpslam status --connect tcp/127.0.0.1:7447 --json
+    """
 
 
 def main() -> None:

@@ -2,10 +2,11 @@
 
 1. The synthetic scene (`cpslam.tools.synth.generate`, N agents walking a 300-frame path) is
    generated once and cached under ``DATA/<scene>-<N>x<walk>-<W>x<H>-s<seed>/`` (``--data-dir``,
-   default ``runs/data``); a folder with its ``scene.json`` is complete and reused.
+   default ``runs/data``; the seed is ``--scene-seed``); a folder with its ``scene.json`` is
+   complete and reused.
 2. ``python -m cpslam.server.cli`` listens on ``tcp/127.0.0.1:PORT`` (a free port unless
    ``--port``); once its liveliness token is seen, one ``python -m cpslam.agent.cli`` per agent
-   streams ``--frames`` evenly spaced frames of its walk. Each child runs in its own process
+   streams ``--num-frames`` evenly spaced frames of its walk. Each child runs in its own process
    group with stdout and stderr in ``RUN/logs/<name>.log``.
 3. Progress: the server's status query (frames, keyframes, groups, loops) once a second.
 4. When every agent exited 0, a ``Control(finalise)`` message asks the server for the final
@@ -34,7 +35,8 @@ from typing import Annotated, Any
 
 import typer
 
-from cpslam.common.config.cli import DeviceOpt, PresetOpt, SetOpt
+from cpslam.common.cli import ExitCode, OverwriteOpt, fail, out_option
+from cpslam.common.config.cli import DeviceOpt, PresetOpt, SeedOpt, SetOpt
 from cpslam.supervisor import ChildFailed, Supervisor
 
 __all__ = ["demo", "frame_slice", "free_port", "prepare_run_dir", "scene_data"]
@@ -79,30 +81,35 @@ def scene_data(data_dir: Path, scene: str, agents: int, walk: int, width: int, h
                     seed=seed, loop=loop, overwrite=True, show_progress=show_progress).agent_dirs
 
 
-def prepare_run_dir(run: Path) -> None:
-    """An empty run folder; an earlier demo's folder (it holds demo.json) is replaced."""
+def prepare_run_dir(run: Path, overwrite: bool = False) -> None:
+    """An empty run folder; an earlier demo's folder (it holds demo.json) is replaced with
+    `overwrite`, anything else is never removed."""
     if run.exists():
-        if (run / MARKER).is_file():
-            shutil.rmtree(run)
-        elif run.is_dir() and not any(run.iterdir()):
+        if run.is_dir() and not any(run.iterdir()):
             return
-        else:
+        if not (run / MARKER).is_file():
             raise FileExistsError(f"{run}: exists and is not an earlier demo's folder; choose "
                                   "another --out or remove it")
+        if not overwrite:
+            raise FileExistsError(f"{run} already exists; pass --overwrite to replace it")
+        shutil.rmtree(run)
     run.mkdir(parents=True)
 
 
 def demo(
     agents: Annotated[int, typer.Option("--agents", min=1, max=8, help="Number of agents.")] = 2,
     preset: PresetOpt = "cpu",
-    out: Annotated[Path, typer.Option("--out", help="Run folder (an earlier demo's is "
-                                      "replaced).")] = Path("runs/demo"),
-    frames: Annotated[int, typer.Option("--frames", min=2, help="Frames per agent, evenly "
-                                        "spaced over its 300-frame walk.")] = 100,
+    out: Annotated[Path, out_option("Run folder (an earlier demo's is replaced with "
+                                    "--overwrite).")] = Path("runs/demo"),
+    overwrite: OverwriteOpt = False,
+    num_frames: Annotated[int, typer.Option("--num-frames", min=2, help="Frames per agent, "
+                                            "evenly spaced over its 300-frame walk.")] = 100,
     scene: Annotated[str, typer.Option("--scene", help="apartment or room.")] = "apartment",
     width: Annotated[int, typer.Option("--width", min=8, help="Image width of the scene.")] = 320,
     height: Annotated[int, typer.Option("--height", min=8, help="Image height.")] = 240,
-    seed: Annotated[int, typer.Option("--seed", help="Scene seed.")] = 0,
+    scene_seed: Annotated[int, typer.Option("--scene-seed", help="Seed of the synthetic "
+                                            "scene.")] = 0,
+    seed: SeedOpt = None,
     data_dir: Annotated[Path, typer.Option("--data-dir", help="Cache of generated scenes.")
                         ] = Path("runs/data"),
     port: Annotated[int, typer.Option("--port", min=0, max=65535,
@@ -129,17 +136,18 @@ def demo(
 
       cpslam demo
 
-      cpslam demo --agents 3 --frames 60 --out runs/demo3
+      cpslam demo --agents 3 --num-frames 60 --out runs/demo3
 
-      cpslam demo --preset tiny --frames 30 --width 160 --height 120 --no-mesh
+      cpslam demo --preset tiny --num-frames 30 --width 160 --height 120 --no-mesh
+
+      cpslam demo --scene room --scene-seed 3 --seed 1 --overwrite
     """
     if scene not in ("apartment", "room"):
-        typer.echo(f"error: --scene must be apartment or room, got {scene!r}", err=True)
-        raise typer.Exit(2)
+        fail(f"--scene must be apartment or room, got {scene!r}")
     from cpslam.common.config.cli import config_or_exit
 
     sets = list(sets or [])
-    cfg = config_or_exit(preset, None, sets, device, None)  # checks --set before any work
+    cfg = config_or_exit(preset, None, sets, device, seed)  # checks --set before any work
     if cfg.keyframes.every > KEYFRAME_EVERY and not any(
             s.replace(" ", "").startswith("keyframes.every=") for s in sets):
         sets.insert(0, f"keyframes.every={KEYFRAME_EVERY}")
@@ -153,19 +161,20 @@ def demo(
     configure_torch(cfg.run.num_threads, cfg.run.deterministic)
     t0 = time.monotonic()
     try:
-        prepare_run_dir(out)
+        prepare_run_dir(out, overwrite)
     except FileExistsError as err:
-        typer.echo(f"error: {err}", err=True)
-        raise typer.Exit(2) from None
-    walk = max(WALK_FRAMES, frames)
-    seqs = scene_data(data_dir, scene, agents, walk, width, height, seed, not no_progress)
+        fail(str(err))
+    walk = max(WALK_FRAMES, num_frames)
+    seqs = scene_data(data_dir, scene, agents, walk, width, height, scene_seed, not no_progress)
     port = port or free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     common = ["--session", SESSION, "--preset", preset, "--out", str(out),
               *(x for s in sets for x in ("--set", s)),
-              *(["--device", device] if device else [])]
-    info: dict[str, Any] = {"agents": agents, "preset": preset, "sets": sets, "frames": frames,
-                            "frame_slice": frame_slice(walk, frames), "scene": scene,
+              *(["--device", device] if device else []),
+              *(["--seed", str(seed)] if seed is not None else [])]
+    info: dict[str, Any] = {"agents": agents, "preset": preset, "sets": sets,
+                            "frames": num_frames, "frame_slice": frame_slice(walk, num_frames),
+                            "scene": scene,
                             "endpoint": endpoint, "session": SESSION,
                             "sequences": {str(i): str(p) for i, p in enumerate(seqs)},
                             "data_s": time.monotonic() - t0}
@@ -173,7 +182,7 @@ def demo(
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     env.setdefault("OMP_NUM_THREADS", "1")
     deadline = t0 + timeout if timeout else None
-    code = 0
+    code = ExitCode.OK
     # SIGTERM (a CI cancelling us, `kill`) stops the children like Ctrl-C does.
     try:
         previous = signal.signal(signal.SIGTERM, _interrupt)
@@ -184,14 +193,14 @@ def demo(
             _run(sup, endpoint, common, seqs, info, deadline, not no_progress)
         except ChildFailed as err:
             typer.echo(f"error: {err}", err=True)
-            code = 1
+            code = ExitCode.ERROR
         except TimeoutError as err:
             typer.echo(f"error: {err}; logs in {out / 'logs'}", err=True)
-            code = 1
+            code = ExitCode.ERROR
         except KeyboardInterrupt:
             typer.echo("interrupted: stopping the agents and the server (the server writes "
                        "what it has; Ctrl-C again to kill)", err=True)
-            code = 130
+            code = ExitCode.INTERRUPTED
     if previous is not None:
         signal.signal(signal.SIGTERM, previous)
     info["wall_s"] = time.monotonic() - t0

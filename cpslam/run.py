@@ -29,7 +29,9 @@ from typing import TYPE_CHECKING, Annotated, Any
 import numpy as np
 import typer
 
+from cpslam.common.cli import OverwriteOpt, check_output, fail, out_option
 from cpslam.common.config.cli import ConfigOpt, DeviceOpt, PresetOpt, SeedOpt, SetOpt
+from cpslam.common.datasets.cli import FormatOpt, FramesOpt
 from cpslam.protocol import keys
 
 if TYPE_CHECKING:
@@ -230,18 +232,18 @@ def run(
     sets: SetOpt = None,
     device: DeviceOpt = None,
     seed: SeedOpt = None,
-    frames: Annotated[str | None, typer.Option(
-        "--frames", help="START:STOP[:STEP] of every sequence.")] = None,
-    fmt: Annotated[str | None, typer.Option(
-        "--format", help="replica, tum, 7scenes or scannet (default: detect).")] = None,
-    out: Annotated[Path | None, typer.Option(
-        "--out", help="Run folder (default: run.out/run.name, timestamped).")] = None,
+    frames: FramesOpt = None,
+    fmt: FormatOpt = None,
+    out: Annotated[Path | None, out_option(
+        "Run folder (default: run.out/run.name, timestamped).")] = None,
+    overwrite: OverwriteOpt = False,
     no_progress: Annotated[bool, typer.Option("--no-progress", help="No progress bar.")] = False,
 ) -> None:
     """Run N agents and the server in one process over the in-memory bus.
 
     One agent per --seq, ids 0, 1, …; agents that see the same place merge into one group
     (one frame, shared decoders). With one --seq: single-agent SLAM with loop closure.
+    --frames applies to every sequence.
 
     Writes RUN/config.yaml, RUN/agent_<id>/ (as cpslam-agent --standalone),
     RUN/trajectories/agent_<id>_local.tum (own frame) and _global.tum (group frame),
@@ -252,6 +254,8 @@ def run(
       cpslam run --seq data/apt/agent_0 --seq data/apt/agent_1 --out runs/apt
 
       cpslam run --seq data/room-loop/agent_0 --preset cpu --out runs/loop
+
+      cpslam run --seq data/room-loop/agent_0 --frames 0:150 --seed 1 --out runs/loop -v --overwrite
     """
     from cpslam.common.config.cli import config_or_exit
     from cpslam.common.datasets import DatasetError
@@ -265,17 +269,16 @@ def run(
 
         keys.check_id(cfg.transport.session, "transport.session")
     except (ValueError, ProtocolError) as err:
-        typer.echo(f"error: {err}", err=True)
-        raise typer.Exit(2) from None
+        fail(str(err))
     from cpslam.agent.standalone import open_for_config
 
     try:
         sequences = [open_for_config(cfg, path, fmt, frames) for path in seq]
     except DatasetError as err:
-        typer.echo(f"error: {err}", err=True)
-        raise typer.Exit(2) from None
+        fail(str(err))
     configure_torch(cfg.run.num_threads, cfg.run.deterministic)
     run_dir = out if out is not None else create_run_dir(cfg.run.out, cfg.run.name)
+    check_output(run_dir, overwrite)
     result = run_collab(cfg, sequences, run_dir, torch_device, show_progress=not no_progress)
     _print_table(result)
 

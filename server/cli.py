@@ -22,6 +22,7 @@ from typing import Annotated
 
 import typer
 
+from cpslam.common.cli import App, ExitCode, fail, out_option
 from cpslam.common.config.cli import (
     ConfigOpt,
     ConnectOpt,
@@ -34,7 +35,7 @@ from cpslam.common.config.cli import (
 
 logger = logging.getLogger("cpslam.server")
 
-app = typer.Typer(add_completion=False, context_settings={"help_option_names": ["-h", "--help"]})
+app = App()
 
 STATE_FILE = "server_state.pt"
 REPEAT_WINDOW_S = 1.0
@@ -44,6 +45,7 @@ delivered twice (to the process and to its process group), not a second request.
 
 @app.command()
 def server(
+    ctx: typer.Context,
     listen: Annotated[
         list[str] | None,
         typer.Option("--listen", help="Endpoint to listen on (repeatable; default "
@@ -56,16 +58,13 @@ def server(
     sets: SetOpt = None,
     device: DeviceOpt = None,
     seed: SeedOpt = None,
-    out: Annotated[
-        Path | None,
-        typer.Option("--out", help="Run folder (default: run.out/run.name, timestamped). "
-                     "An existing folder with a server_state.pt is resumed."),
-    ] = None,
+    out: Annotated[Path | None, out_option(
+        "Run folder (default: run.out/run.name, timestamped). An existing folder with a "
+        "server_state.pt is resumed.")] = None,
     persist_every: Annotated[
         float, typer.Option("--persist-every", min=0.0,
                             help="Seconds between state writes (acks wait for the write).")
     ] = 1.0,
-    verbose: Annotated[int, typer.Option("--verbose", "-v", count=True)] = 0,
 ) -> None:
     """Run the collaboration server: loops, group merges, federated decoders, pose graph.
 
@@ -84,21 +83,23 @@ def server(
       cpslam-server --listen tcp/0.0.0.0:7447 --session lab --preset cpu --out runs/lab
 
       cpslam-server --listen tcp/0.0.0.0:7447 --connect tcp/router.local:7447
+
+      cpslam-server --out runs/lab -q
     """
     from cpslam.common.bus import BusError, bus_from_config
+    from cpslam.common.cli import verbosity
     from cpslam.common.config import save_config
     from cpslam.common.config.cli import config_or_exit, transport_sets
     from cpslam.common.device import configure_torch
     from cpslam.common.logs import log_to_file, setup_logging
     from cpslam.common.rundir import create_run_dir
 
-    setup_logging(verbose, daemon=True)
+    setup_logging(verbosity(ctx), daemon=True)
     cfg = config_or_exit(preset, config_file, [*(sets or []), *transport_sets(
         session, listen, connect)], device, seed)
     if cfg.transport.backend != "zenoh":
-        typer.echo("error: cpslam-server needs transport.backend zenoh (the in-memory bus is "
-                   "for `cpslam run`)", err=True)
-        raise typer.Exit(2)
+        fail("cpslam-server needs transport.backend zenoh (the in-memory bus is for "
+             "`cpslam run`)")
     run_dir = out if out is not None else create_run_dir(cfg.run.out, cfg.run.name)
     run_dir.mkdir(parents=True, exist_ok=True)
     log_to_file(run_dir / "server.log")
@@ -113,16 +114,14 @@ def server(
     try:
         bus = bus_from_config(cfg.transport, "server")
     except (BusError, ValueError) as err:
-        typer.echo(f"error: cannot open the server endpoint: {err}", err=True)
-        raise typer.Exit(1) from None
+        fail(f"cannot open the server endpoint: {err}", ExitCode.ERROR)
     with bus:
         try:
             # A verification budget keeps acks and updates flowing while loops queue up.
             node = ServerNode(cfg, bus, run_dir, state_path=run_dir / STATE_FILE,
                               persist_every_s=persist_every, verify_budget_s=2.0).start()
         except RuntimeError as err:
-            typer.echo(f"error: {err}", err=True)
-            raise typer.Exit(1) from None
+            fail(str(err), ExitCode.ERROR)
         logger.info("server listening on %s (session %s, preset %s) -> %s",
                     ", ".join(bus.listen) or "-", cfg.transport.session, preset, run_dir)
         try:
@@ -162,7 +161,7 @@ def signal_handler(stop: threading.Event, clock: Callable[[], float] = time.mono
                         "process group too?); still finalising", name, now - t0)
             return
         logger.warning("second %s: exiting without finalising", name)
-        raise SystemExit(130)
+        raise SystemExit(ExitCode.INTERRUPTED)
 
     return handler
 

@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
+from cpslam.common.cli import ExitCode, JsonOpt, fail
 from cpslam.common.config.cli import ConnectOpt, SessionOpt
 
 if TYPE_CHECKING:
@@ -28,10 +29,12 @@ TimeoutOpt = Annotated[
 def status(
     connect: ConnectOpt = None,
     session: SessionOpt = None,
-    as_json: Annotated[bool, typer.Option("--json", help="Print the raw summary as JSON.")] = False,
+    as_json: JsonOpt = False,
     timeout: TimeoutOpt = 10.0,
 ) -> None:
     """Print a running server's agents, groups, loops and federated rounds.
+
+    Exits 3 when no server answers within --timeout (docs/cli.md, exit codes).
 
     Examples:
 
@@ -43,9 +46,8 @@ def status(
     with bus:
         summary = query_status(bus, cfg.transport.session, timeout)
     if summary is None:
-        typer.echo(f"error: no cpslam-server answered on session {cfg.transport.session!r} "
-                   f"within {timeout:.0f} s", err=True)
-        raise typer.Exit(1)
+        fail(f"no cpslam-server answered on session {cfg.transport.session!r} within "
+             f"{timeout:.0f} s", ExitCode.NO_SERVER)
     if as_json:
         typer.echo(json.dumps(summary, indent=2, sort_keys=True))
     else:
@@ -80,6 +82,8 @@ def finalise(
 ) -> None:
     """Ask a running server to finish: final pose graph, refinement, outputs, exit.
 
+    Exits 3 when no server is found, 1 when it is still running after --timeout.
+
     Examples:
 
       cpslam finalise --connect tcp/127.0.0.1:7447
@@ -99,8 +103,7 @@ def finalise(
                                      on_leave=lambda _k: gone.set())
         if not present.wait(min(timeout, 10.0)):
             watch.close()
-            typer.echo(f"error: no cpslam-server on session {s!r}", err=True)
-            raise typer.Exit(1)
+            fail(f"no cpslam-server on session {s!r}", ExitCode.NO_SERVER)
         action = "shutdown" if shutdown else "finalise"
         bus.publish(keys.server_control(s), protocol.encode(
             Control(action=action, reason="cpslam finalise")))
@@ -108,8 +111,7 @@ def finalise(
         t0 = time.monotonic()
         if wait and not gone.wait(timeout):
             watch.close()
-            typer.echo(f"error: the server was still running after {timeout:.0f} s", err=True)
-            raise typer.Exit(1)
+            fail(f"the server was still running after {timeout:.0f} s", ExitCode.ERROR)
         watch.close()
     if wait:
         typer.echo(f"server finished in {time.monotonic() - t0:.1f} s")
@@ -140,7 +142,7 @@ def format_status(summary: dict) -> str:
 
 
 def _client(connect: list[str] | None, session: str | None, timeout: float):
-    """The config (defaults + flags + environment) and an open client bus, or exit 1."""
+    """The config (defaults + flags + environment) and an open client bus, or exit 3."""
     from cpslam.common.bus import open_client
     from cpslam.common.config.cli import config_or_exit, transport_sets
 
@@ -149,6 +151,5 @@ def _client(connect: list[str] | None, session: str | None, timeout: float):
     bus = open_client(cfg.transport, timeout, "client")
     if bus is None:
         where = ", ".join(cfg.transport.connect) or "tcp/127.0.0.1:7447"
-        typer.echo(f"error: cannot reach a server at {where}", err=True)
-        raise typer.Exit(1)
+        fail(f"cannot reach a server at {where}", ExitCode.NO_SERVER)
     return cfg, bus

@@ -27,7 +27,8 @@ SetOpt = Annotated[
 DeviceOpt = Annotated[
     str | None, typer.Option("--device", help="auto, cpu, cuda or cuda:N (overrides run.device).")
 ]
-SeedOpt = Annotated[int | None, typer.Option("--seed", help="Random seed (overrides run.seed).")]
+SeedOpt = Annotated[int | None, typer.Option(
+    "--seed", help="The run's random seed (overrides run.seed).")]
 
 
 def config_or_exit(
@@ -38,13 +39,13 @@ def config_or_exit(
     seed: int | None = None,
 ):
     """Load the effective configuration, or print the error and exit with status 2."""
+    from cpslam.common.cli import fail
     from cpslam.common.config import ConfigError, config_from_cli
 
     try:
         return config_from_cli(preset, config_file, sets or [], device=device, seed=seed)
     except ConfigError as err:
-        typer.echo(f"error: {err}", err=True)
-        raise typer.Exit(2) from None
+        fail(str(err))
 
 
 def show(

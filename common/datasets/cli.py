@@ -14,6 +14,8 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
+from cpslam.common.cli import JsonOpt, fail
+
 if TYPE_CHECKING:
     from cpslam.common.datasets.base import RGBDSequence
 
@@ -36,7 +38,7 @@ def info(
     samples: Annotated[
         int, typer.Option("--samples", min=1, help="Frames sampled for the depth statistics.")
     ] = 5,
-    as_json: Annotated[bool, typer.Option("--json", help="Print JSON instead of text.")] = False,
+    as_json: JsonOpt = False,
     camera: Annotated[
         list[str] | None,
         typer.Option("--camera", help="Override a camera.yaml key, e.g. --camera fx=525 "
@@ -60,8 +62,7 @@ def info(
         sequence = open_sequence(path, fmt=format, frames=frames, overrides=overrides or None)
         summary = summarize(sequence, samples=samples)
     except DatasetError as e:
-        typer.echo(f"error: {e}", err=True)
-        raise typer.Exit(code=2) from None
+        fail(str(e))
     if as_json:
         typer.echo(json.dumps(summary, indent=2))
     else:

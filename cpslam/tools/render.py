@@ -20,6 +20,8 @@ from typing import TYPE_CHECKING, Annotated
 import numpy as np
 import typer
 
+from cpslam.common.cli import OverwriteOpt, check_output, fail, out_option
+
 if TYPE_CHECKING:
     from cpslam.common.camera import Intrinsics
     from cpslam.common.config import CpslamConfig
@@ -156,9 +158,9 @@ def render(
         str, typer.Option("--agent", help="Which agent's map: the id of agent_<id>/ (e.g. 0 "
                           "or robot-2).")
     ] = "0",
-    out: Annotated[
-        Path | None, typer.Option("--out", help="Output folder (default: RUN/agent_<id>/renders).")
-    ] = None,
+    out: Annotated[Path | None, out_option("Output folder (default: RUN/agent_<id>/renders).")
+                   ] = None,
+    overwrite: OverwriteOpt = False,
     every: Annotated[int, typer.Option("--every", min=1, help="Render every N-th pose.")] = 1,
     scale: Annotated[
         float, typer.Option("--scale", min=0.05, max=4.0, help="Image size factor.")
@@ -177,13 +179,17 @@ def render(
       cpslam render runs/room --poses runs/data/room/agent_0 --relative --out runs/room/gt
 
       cpslam render runs/office --agent robot-2 --every 10
+
+      cpslam render runs/room --every 5 --overwrite
     """
     from cpslam.common.device import resolve_device
     from cpslam.protocol import ProtocolError, keys
     from cpslam.tools.eval.source import load_trajectory
 
+    target = out or run / f"agent_{agent}" / "renders"
     try:
         keys.check_id(agent, "--agent")
+        check_output(target, overwrite)
         torch_device = resolve_device(device)
         model = load_run_model(run, agent, torch_device)
         own = run / f"agent_{agent}" / "trajectory.tum"
@@ -193,11 +199,9 @@ def render(
             start = load_trajectory(own).stamps[0] if own.is_file() else None
             T_world_cam = relative_to_start(trajectory.stamps, T_world_cam, start)
     except (FileNotFoundError, ValueError, ProtocolError) as err:
-        typer.echo(f"error: {err}", err=True)
-        raise typer.Exit(2) from None
+        fail(str(err))
     T_world_cam = T_world_cam[::every]
     intrinsics = model.intrinsics if scale == 1.0 else model.intrinsics.scaled(scale)
-    target = out or run / f"agent_{agent}" / "renders"
     n = write_renders(target, render_views(model, T_world_cam, intrinsics), T_world_cam,
                       intrinsics)
     typer.echo(f"rendered {n} views at {intrinsics.width}x{intrinsics.height} → {target}")

@@ -26,7 +26,7 @@ runner = CliRunner()
 def room(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("room")
     result = runner.invoke(cpslam_app, ["dataset", "synth", "--scene", "room", "--loop",
-                                        "--frames", "24", "--width", "96", "--height", "72",
+                                        "--num-frames", "24", "--width", "96", "--height", "72",
                                         "--out", str(out)])
     assert result.exit_code == 0, result.output
     return out / "agent_0"
@@ -52,7 +52,7 @@ def test_standalone_run_writes_everything_and_evaluates(room: Path, tmp_path: Pa
     assert metrics["torch_threads"] == 1  # the tiny preset's run.num_threads
     assert len(metrics["per_frame"]) == 12
     result = runner.invoke(cpslam_app, ["eval", "ate", "--gt", str(room), "--est", str(run),
-                                        "--json", str(tmp_path / "ate.json")])
+                                        "--out", str(tmp_path / "ate.json")])
     assert result.exit_code == 0, result.output
     ate = json.loads((tmp_path / "ate.json").read_text())
     assert ate["n_pairs"] == 12 and ate["rmse_m"] < 0.2  # tiny preset: bounded, not accurate

@@ -23,7 +23,7 @@ pytest.importorskip("open3d")
 def test_demo_tiny_end_to_end(tmp_path: Path) -> None:
     out = tmp_path / "demo"
     cmd = [sys.executable, "-m", "cpslam", "demo", "--preset", "tiny", "--agents", "2",
-           "--frames", "30", "--width", "160", "--height", "120", "--out", str(out),
+           "--num-frames", "30", "--width", "160", "--height", "120", "--out", str(out),
            "--set", "run.num_threads=auto",
            "--data-dir", str(tmp_path / "data"), "--no-progress", "--timeout", "600"]
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=900,
@@ -53,13 +53,18 @@ def test_demo_tiny_end_to_end(tmp_path: Path) -> None:
     assert f"run.num_threads={threads}" in info["sets"]
     assert f"({threads} CPU threads)" in (out / "logs" / "agent_0.log").read_text()
 
-    # A second run reuses the cached scene, replaces the earlier demo folder, and gives up
-    # cleanly at its --timeout (every child stopped).
+    # A second run refuses the earlier demo folder without --overwrite; with it, it reuses the
+    # cached scene, replaces the folder, and gives up cleanly at its --timeout (every child
+    # stopped).
     scene = next((tmp_path / "data").glob("*/scene.json"))
     stamp = scene.stat().st_mtime_ns
     (out / "stale.txt").write_text("from the first run")
-    again = subprocess.run([*cmd[:-2], "--timeout", "3"], capture_output=True, text=True,
-                           timeout=300, env=_env())
+    refused = subprocess.run([*cmd[:-2], "--timeout", "3"], capture_output=True, text=True,
+                             timeout=300, env=_env())
+    assert refused.returncode == 2 and "--overwrite" in refused.stderr, refused.stderr
+    assert (out / "stale.txt").is_file()
+    again = subprocess.run([*cmd[:-2], "--timeout", "3", "--overwrite"], capture_output=True,
+                           text=True, timeout=300, env=_env())
     assert again.returncode == 1 and "--timeout reached" in again.stderr, again.stderr
     assert not (out / "stale.txt").exists() and scene.stat().st_mtime_ns == stamp
 

@@ -12,12 +12,9 @@ from pathlib import Path
 
 import pytest
 
-from cpslam.agent.daemon import (
-    EXIT_INTERRUPTED,
-    ServerPresence,
-    run_networked,
-)
+from cpslam.agent.daemon import ServerPresence, run_networked
 from cpslam.common.bus import InMemoryBus, ZenohBus, open_client
+from cpslam.common.cli import ExitCode
 from cpslam.common.config import load_config, override_config
 from cpslam.demo import free_port
 
@@ -89,7 +86,7 @@ def test_connected_without_a_server_is_logged_and_interruptible(tmp_path: Path,
                                      wait_timeout_s=60.0, show_progress=False, stop=stop)
         finally:
             logging.getLogger("cpslam.agent.daemon").removeHandler(stopper)
-    assert code == EXIT_INTERRUPTED
+    assert code == ExitCode.INTERRUPTED
     assert stopper.stopped_at is not None and time.monotonic() - stopper.stopped_at < 1.0
     assert "interrupted while waiting for the server" in caplog.text
 

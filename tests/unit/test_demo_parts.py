@@ -96,11 +96,14 @@ def test_run_folder_replaces_only_an_earlier_demo(tmp_path: Path) -> None:
     prepare_run_dir(run)
     (run / MARKER).write_text("{}")
     (run / "metrics.json").write_text("{}")
-    prepare_run_dir(run)
+    with pytest.raises(FileExistsError, match="--overwrite"):
+        prepare_run_dir(run)
+    assert (run / "metrics.json").is_file()
+    prepare_run_dir(run, overwrite=True)
     assert run.is_dir() and not any(run.iterdir())
     (run / "precious.txt").write_text("mine")
     with pytest.raises(FileExistsError, match="not an earlier demo"):
-        prepare_run_dir(run)
+        prepare_run_dir(run, overwrite=True)
     assert (run / "precious.txt").is_file()
 
 

@@ -51,7 +51,7 @@ def test_cli_happy_path(tmp_path: Path, app: typer.Typer) -> None:
     gt, run = make_pair(tmp_path)
     out_json, out_png = tmp_path / "out" / "ate.json", tmp_path / "out" / "ate.png"
     args = ["ate", "--gt", str(gt), "--est", str(run), "--align", "se3"]
-    result = CliRunner().invoke(app, [*args, "--json", str(out_json), "--plot", str(out_png)])
+    result = CliRunner().invoke(app, [*args, "--out", str(out_json), "--plot", str(out_png)])
     assert result.exit_code == 0, result.output
     assert "RMSE" in result.output and "cm" in result.output and "se3" in result.output
     record = json.loads(out_json.read_text())
@@ -121,7 +121,7 @@ def test_cli_dataset_folder_with_frames_and_format(tmp_path: Path, app: typer.Ty
     write_tum(tmp_path / "est.tum", np.arange(len(gt)) / 30.0, est)
     out = tmp_path / "ate.json"
     base = ["ate", "--gt", str(tmp_path / "seq"), "--est", str(tmp_path / "est.tum"),
-            "--align", "none", "--json", str(out)]
+            "--align", "none", "--out", str(out), "--overwrite"]
     result = CliRunner().invoke(app, base)
     assert result.exit_code == 0, result.output
     record = json.loads(out.read_text())
@@ -134,7 +134,7 @@ def test_cli_dataset_folder_with_frames_and_format(tmp_path: Path, app: typer.Ty
     assert record["n_gt"] == 4 and record["n_pairs"] == 4 and record["n_est"] == 12
     # the dataset may be the estimate's side as well
     swapped = ["ate", "--gt", str(tmp_path / "est.tum"), "--est", str(tmp_path / "seq"),
-               "--align", "none", "--frames", ":5", "--json", str(out)]
+               "--align", "none", "--frames", ":5", "--out", str(out), "--overwrite"]
     result = CliRunner().invoke(app, swapped)
     assert result.exit_code == 0, result.output
     assert json.loads(out.read_text())["n_est"] == 5
@@ -199,7 +199,7 @@ def test_cli_rpe_rows_and_json(tmp_path: Path, app: typer.Typer) -> None:
     gt, run = make_pair(tmp_path)
     out_json = tmp_path / "ate.json"
     result = CliRunner().invoke(app, ["ate", "--gt", str(gt), "--est", str(run), "--rpe", "10",
-                                      "--rpe", "1", "--json", str(out_json)])
+                                      "--rpe", "1", "--out", str(out_json)])
     assert result.exit_code == 0, result.output
     assert "RPE over 1 frame" in result.output and "RPE over 10 frames" in result.output
     record = json.loads(out_json.read_text())
@@ -226,7 +226,7 @@ def test_cli_pieces_between_ground_truth_jumps(tmp_path: Path, app: typer.Typer)
     out_json = tmp_path / "ate.json"
     result = CliRunner().invoke(app, ["ate", "--gt", str(tmp_path / "gt.tum"), "--est",
                                       str(tmp_path / "est.tum"), "--align", "se3", "--pieces",
-                                      "--json", str(out_json)])
+                                      "--out", str(out_json)])
     assert result.exit_code == 0, result.output
     assert "RMSE over pieces" in result.output and "49->50" in result.output
     record = json.loads(out_json.read_text())

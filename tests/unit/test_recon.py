@@ -228,8 +228,8 @@ def app() -> typer.Typer:
 def test_cli_happy_path(tmp_path: Path, app: typer.Typer) -> None:
     gt, est = write_mesh(tmp_path / "gt.ply", box()), write_mesh(tmp_path / "est.ply", box(0.03))
     out = tmp_path / "out" / "recon.json"
-    args = ["recon", "--gt", str(gt), "--est", str(est), "--samples", "20000", "--seed", "1"]
-    result = CliRunner().invoke(app, [*args, "--method", "surface", "--json", str(out)])
+    args = ["recon", "--gt", str(gt), "--est", str(est), "--samples", "20000", "--sample-seed", "1"]
+    result = CliRunner().invoke(app, [*args, "--method", "surface", "--out", str(out)])
     assert result.exit_code == 0, result.output
     assert "accuracy" in result.output and "cm" in result.output
     assert "sampling floor" not in result.output  # surface method
@@ -257,7 +257,7 @@ def test_cli_cull_to_dataset(tmp_path: Path, app: typer.Typer) -> None:
         str(tmp_path / "syn" / "agent_0"),
         "--frames",
         "0:3",
-        "--json",
+        "--out",
         str(tmp_path / "r.json"),
     ]
     result = CliRunner().invoke(app, args)

@@ -252,7 +252,7 @@ def test_cli_synth(tmp_path):
     help_text = runner.invoke(app, ["--help"]).output
     assert "Example" in help_text and "--agents" in help_text
     out = tmp_path / "cli"
-    args = ["--out", str(out), "--frames", "3", "--width", "32", "--height", "24", "--loop"]
+    args = ["--out", str(out), "--num-frames", "3", "--width", "32", "--height", "24", "--loop"]
     result = runner.invoke(app, args)
     assert result.exit_code == 0, result.output
     assert "ms per frame" in result.output and str(out / "agent_0") in result.output

@@ -13,6 +13,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from cpslam.common.cli import JsonOpt, OverwriteOpt, check_output, fail, out_option
 from cpslam.common.datasets.cli import FormatOpt, FramesOpt
 from cpslam.common.trajectory import Trajectory
 from cpslam.tools.eval.ate import DEFAULT_MAX_DT, AteResult, evaluate_ate
@@ -62,12 +63,12 @@ def ate(
     ] = DEFAULT_MAX_DT,
     fmt: FormatOpt = None,
     frames: FramesOpt = None,
-    json_out: Annotated[
-        Path | None, typer.Option("--json", help="Write the numbers to this JSON file.")
-    ] = None,
+    as_json: JsonOpt = False,
+    out: Annotated[Path | None, out_option("Also write the numbers to this JSON file.")] = None,
     plot: Annotated[
         Path | None, typer.Option("--plot", help="Write a PNG: top view and error over time.")
     ] = None,
+    overwrite: OverwriteOpt = False,
     rpe: Annotated[
         list[int] | None,
         typer.Option(
@@ -97,12 +98,17 @@ def ate(
 
       cpslam eval ate --gt groundtruth.tum --est runs/apt/agent_1/trajectory.tum --align sim3
 
-      cpslam eval ate --gt data/office --format tum --est runs/office --json ate.json --plot ate.png
+      cpslam eval ate --gt data/office --format tum --est runs/office --out ate.json --plot ate.png
+
+      cpslam eval ate --gt runs/data/room/agent_0 --est runs/room --json > ate.json
 
       cpslam eval ate --gt ../shared/data/7scenes-kitchen-0-299 --est runs/kitchen --rpe 1 --rpe 10
 
       cpslam eval ate --gt ../shared/data/7scenes-kitchen-0-299 --est runs/kitchen --pieces
     """
+    for path in (out, plot):
+        if path is not None:
+            check_output(path, overwrite)
     try:
         gt_kind, gt_file = locate_trajectory(gt)
         est_kind, est_file = locate_trajectory(est)
@@ -129,28 +135,36 @@ def ate(
                               reference_jumps(gt_traj.poses), align=align.value,
                               max_dt=max_dt) if pieces else None
     except (OSError, ValueError) as exc:
-        typer.echo(f"error: {exc}", err=True)
-        raise typer.Exit(code=2) from exc
+        fail(str(exc))
 
-    _print_table(result, gt_file, est_file, rpes, split)
+    record = {"gt": str(gt_file), "est": str(est_file), **result.to_dict()}
+    if rpes:
+        record["rpe"] = [r.to_dict() for r in rpes]
+    if split is not None:
+        record["pieces"] = split.to_dict()
+    if as_json:
+        typer.echo(json.dumps(record, indent=2))
+    else:
+        _print_table(result, gt_file, est_file, rpes, split)
     try:
-        if json_out is not None:
-            record = {"gt": str(gt_file), "est": str(est_file), **result.to_dict()}
-            if rpes:
-                record["rpe"] = [r.to_dict() for r in rpes]
-            if split is not None:
-                record["pieces"] = split.to_dict()
-            json_out.parent.mkdir(parents=True, exist_ok=True)
-            json_out.write_text(json.dumps(record, indent=2) + "\n")
-            typer.echo(f"wrote {json_out}")
+        if out is not None:
+            write_record(out, record, quiet=as_json)
         if plot is not None:
             from cpslam.tools.eval.plot import plot_ate
 
             plot_ate(result, plot, title=f"{est_file} vs {gt_file}")
-            typer.echo(f"wrote {plot}")
+            if not as_json:
+                typer.echo(f"wrote {plot}")
     except OSError as exc:
-        typer.echo(f"error: {exc}", err=True)
-        raise typer.Exit(code=2) from exc
+        fail(str(exc))
+
+
+def write_record(path: Path, record: dict, quiet: bool = False) -> None:
+    """Write an evaluation record as JSON (`--out`); say so unless stdout carries `--json`."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(record, indent=2) + "\n")
+    if not quiet:
+        typer.echo(f"wrote {path}")
 
 
 def _load(path: Path, kind: str, fmt: str | None, frames: str | None) -> Trajectory:

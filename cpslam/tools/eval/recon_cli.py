@@ -13,6 +13,8 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from cpslam.common.cli import JsonOpt, OverwriteOpt, check_output, fail, out_option
+
 if TYPE_CHECKING:
     from cpslam.common.datasets import RGBDSequence
     from cpslam.tools.eval.recon import Frustum, ReconResult
@@ -41,7 +43,8 @@ def recon(
     samples: Annotated[
         int, typer.Option("--samples", min=1, help="Points sampled on each mesh.")
     ] = _DEFAULT_SAMPLES,
-    seed: Annotated[int, typer.Option("--seed", help="Seed of the surface sampling.")] = 0,
+    sample_seed: Annotated[int, typer.Option(
+        "--sample-seed", help="Seed of the surface sampling.")] = 0,
     threshold: Annotated[
         float,
         typer.Option("--threshold", min=0.0, help="Completion-ratio radius, metres."),
@@ -77,9 +80,9 @@ def recon(
         float,
         typer.Option("--depth-max", min=0.0, help="With --cull-to: farthest seen depth, metres."),
     ] = 6.0,
-    json_out: Annotated[
-        Path | None, typer.Option("--json", help="Write the numbers to this JSON file.")
-    ] = None,
+    as_json: JsonOpt = False,
+    out: Annotated[Path | None, out_option("Also write the numbers to this JSON file.")] = None,
+    overwrite: OverwriteOpt = False,
 ) -> None:
     """Mesh accuracy, completion (cm) and completion ratio (%) against ground truth.
 
@@ -89,9 +92,15 @@ def recon(
 
       cpslam eval recon --gt data/synth/mesh.ply --est runs/x/mesh.ply --cull-to data/synth/agent_0
 
-      cpslam eval recon --gt gt.ply --est runs/x/mesh.ply --method surface --json recon.json
+      cpslam eval recon --gt gt.ply --est runs/x/mesh.ply --method surface --out recon.json
+
+      cpslam eval recon --gt gt.ply --est runs/x/mesh.ply --sample-seed 1 --json
     """
+    from cpslam.tools.eval.cli import write_record
     from cpslam.tools.eval.recon import evaluate_recon
+
+    if out is not None:
+        check_output(out, overwrite)
     from cpslam.tools.mesh import read_mesh
 
     try:
@@ -104,30 +113,25 @@ def recon(
             est_mesh,
             gt_mesh,
             samples=samples,
-            seed=seed,
+            seed=sample_seed,
             threshold=threshold,
             method=method.value,
             frustum=frustum,
         )
     except (OSError, ValueError) as exc:
-        typer.echo(f"error: {exc}", err=True)
-        raise typer.Exit(code=2) from exc
+        fail(str(exc))
 
-    _print_table(result, gt, est, cull_to)
-    if json_out is not None:
-        record = {
-            "gt": str(gt),
-            "est": str(est),
-            "cull_to": cull_to and str(cull_to),
-            **result.to_dict(),
-        }
+    record = {"gt": str(gt), "est": str(est), "cull_to": cull_to and str(cull_to),
+              **result.to_dict()}
+    if as_json:
+        typer.echo(json.dumps(record, indent=2))
+    else:
+        _print_table(result, gt, est, cull_to)
+    if out is not None:
         try:
-            json_out.parent.mkdir(parents=True, exist_ok=True)
-            json_out.write_text(json.dumps(record, indent=2) + "\n")
+            write_record(out, record, quiet=as_json)
         except OSError as exc:
-            typer.echo(f"error: {json_out}: {exc}", err=True)
-            raise typer.Exit(code=2) from exc
-        typer.echo(f"wrote {json_out}")
+            fail(f"{out}: {exc}")
 
 
 def _frustum(path: Path, frames: str | None, occlusion: bool, depth_max: float) -> Frustum:
