@@ -287,3 +287,15 @@ def test_coarse_method_none_refines_from_the_identity(scenario):
             np.testing.assert_array_equal(starts[0], np.eye(4))
             assert record.method == "render" and record.accepted, record.reason
             np.testing.assert_allclose(record.T_a_b, T_true, atol=1e-9)
+
+
+def test_without_verification_the_identity_is_kept(scenario):
+    """`loop.verify: false` (the paper preset): the same pair that fails verification at the
+    identity becomes a loop at the identity, without an information matrix (sigmas weigh it)."""
+    clock = [0.0]
+    be = backend(scenario, clock, loop=loop_config(coarse_method="none", verify=False),
+                 refine_pose=None)
+    feed(be, scenario, clock, until_kf=5)
+    (record,) = be.loops
+    assert record.method == "identity" and record.accepted, record.reason
+    assert record.information is None
