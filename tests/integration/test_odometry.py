@@ -62,6 +62,8 @@ def test_tiny_preset_20_frames(sequence_dir: Path) -> None:
     start = time.perf_counter()
     results = [odometry.step(frame) for frame in frames]
     seconds = time.perf_counter() - start
+    # Wall time on a shared runner: a generous bound (a few seconds alone, about 11 s on a
+    # loaded 2-core machine) that only catches a hang or a many-fold slowdown.
     assert seconds < 60.0
     assert [r.kf_id for r in results if r.is_keyframe] == [0, 1, 2, 3]
     assert [r.index for r in results if r.map_steps] == [0, 5, 10, 15]
