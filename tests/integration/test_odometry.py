@@ -59,12 +59,13 @@ def test_tiny_preset_20_frames(sequence_dir: Path) -> None:
     frames, seq = _frames(sequence_dir, cfg.camera.downscale)
     intrinsics = seq.intrinsics.scaled(cfg.camera.downscale)
     odometry = Odometry.from_config(cfg, intrinsics, "cpu")
-    start = time.perf_counter()
+    start = time.process_time()
     results = [odometry.step(frame) for frame in frames]
-    seconds = time.perf_counter() - start
-    # Wall time on a shared runner: a generous bound (a few seconds alone, about 11 s on a
-    # loaded 2-core machine) that only catches a hang or a many-fold slowdown.
-    assert seconds < 60.0
+    cpu_s = time.process_time() - start
+    # CPU time, not wall time: a loaded runner stretches the wall clock (78 s was seen at a
+    # load of 12 on 2 cores) but not the work done. A few seconds alone; the bound only
+    # catches a many-fold slowdown.
+    assert cpu_s < 60.0, cpu_s
     assert [r.kf_id for r in results if r.is_keyframe] == [0, 1, 2, 3]
     assert [r.index for r in results if r.map_steps] == [0, 5, 10, 15]
     assert results[0].map_steps == cfg.mapping.iters_first
