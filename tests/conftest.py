@@ -2,13 +2,18 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
+from fake_clock import FakeClock
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO_ROOT.parent / "shared" / "data"
 KITCHEN = SHARED_DATA / "7scenes-kitchen-0-299"
+# Torch threads per test: 1 unless OMP_NUM_THREADS says otherwise, so that running the suite
+# under `OMP_NUM_THREADS=2` really changes the reduction order (docs/testing.md).
+TORCH_THREADS = int(os.environ.get("OMP_NUM_THREADS") or 1)
 
 
 def pytest_configure(config: pytest.Config) -> None:
@@ -18,7 +23,7 @@ def pytest_configure(config: pytest.Config) -> None:
     try:
         import torch
 
-        torch.set_num_threads(1)
+        torch.set_num_threads(TORCH_THREADS)
     except ImportError:  # pragma: no cover
         pass
 
@@ -41,8 +46,8 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
 
 
 @pytest.fixture(autouse=True)
-def _one_torch_thread():
-    """Every test starts with one torch thread (see pytest_configure), whatever an earlier
+def _torch_threads():
+    """Every test starts with TORCH_THREADS torch threads, whatever an earlier
     in-process command set, and leaves torch's deterministic-algorithms setting (which
     in-process daemon commands switch on through run.deterministic) as it found it."""
     try:
@@ -52,9 +57,9 @@ def _one_torch_thread():
         return
     deterministic = torch.are_deterministic_algorithms_enabled()
     warn_only = torch.is_deterministic_algorithms_warn_only_enabled()
-    torch.set_num_threads(1)
+    torch.set_num_threads(TORCH_THREADS)
     yield
-    torch.set_num_threads(1)
+    torch.set_num_threads(TORCH_THREADS)
     torch.use_deterministic_algorithms(deterministic, warn_only=warn_only)
 
 
@@ -64,3 +69,9 @@ def kitchen_path() -> Path:
     if not KITCHEN.is_dir():
         pytest.skip(f"real data not found at {KITCHEN}")
     return KITCHEN
+
+
+@pytest.fixture
+def fake_clock() -> FakeClock:
+    """A clock that only moves when the test moves it (pass it where code takes `clock`/`now`)."""
+    return FakeClock()

@@ -21,6 +21,16 @@ from cpslam.tools.eval import evaluate_ate
 pytest.importorskip("open3d")  # the synthetic renderer
 
 
+@pytest.fixture(autouse=True)
+def _deterministic() -> None:
+    """Deterministic algorithms on, as every command has them (`run.deterministic`, on by
+    default): with more than one torch thread (an `OMP_NUM_THREADS` variant) they are what
+    makes two runs repeat. tests/conftest.py restores the setting after each test."""
+    from cpslam.common.device import configure_torch
+
+    configure_torch(torch.get_num_threads(), True)
+
+
 @pytest.fixture(scope="module")
 def sequence_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     from cpslam.tools.synth import generate
@@ -59,10 +69,14 @@ def test_tiny_preset_20_frames(sequence_dir: Path) -> None:
     frames, seq = _frames(sequence_dir, cfg.camera.downscale)
     intrinsics = seq.intrinsics.scaled(cfg.camera.downscale)
     odometry = Odometry.from_config(cfg, intrinsics, "cpu")
-    start = time.perf_counter()
+    start = time.process_time()
     results = [odometry.step(frame) for frame in frames]
-    seconds = time.perf_counter() - start
-    assert seconds < 60.0
+    cpu_s = time.process_time() - start
+    # CPU time, not wall time: a loaded 2-core runner stretched the wall clock to 78 s (one
+    # thread) and 107 s (two). CPU time grows less, though with two threads OpenMP spins while
+    # a thread waits for the other, so the bound is far above the few seconds this takes
+    # alone and only catches a hang or a many-fold slowdown.
+    assert cpu_s < 300.0, cpu_s
     assert [r.kf_id for r in results if r.is_keyframe] == [0, 1, 2, 3]
     assert [r.index for r in results if r.map_steps] == [0, 5, 10, 15]
     assert results[0].map_steps == cfg.mapping.iters_first

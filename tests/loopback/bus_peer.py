@@ -9,8 +9,8 @@ It declares, then prints READY and serves until stdin closes (or it is killed):
   on `.../test/echo/<type>`; an invalid one is answered on `.../test/echo/invalid`;
 - keyframe images: the image queryable `keys.agent_image_queryable(SESSION, AGENT)` decodes a
   `KeyframeImageRequest` payload and answers with a `KeyframeImage` of the requested keyframe;
-- a deliberately slow subscriber on `.../test/flood` (20 ms per sample, queue_size 4) and a
-  queryable `.../test/stats` answering JSON {"handled": n, "stats": bus.stats()}.
+- a deliberately slow subscriber on `.../test/flood` (FLOOD_SLEEP_S per sample, queue_size 4)
+  and a queryable `.../test/stats` answering JSON {"handled": n, "stats": bus.stats()}.
 """
 
 from __future__ import annotations
@@ -30,7 +30,8 @@ from cpslam.protocol.samples import sample
 SESSION = "lb"
 AGENT = "agent-0"
 FLOOD_QUEUE_SIZE = 4
-FLOOD_SLEEP_S = 0.02
+# Slow enough that a publisher waiting for this consumer could not pass the flood test.
+FLOOD_SLEEP_S = 0.1
 
 
 def lb_key(name: str) -> str:

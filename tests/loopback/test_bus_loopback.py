@@ -23,7 +23,13 @@ SESSION = "lb"
 AGENT = "agent-0"
 
 
-def wait_until(predicate: Callable[[], bool], timeout: float = 5.0) -> bool:
+# Two real processes over real sockets, so no fake clock: the upper bounds below are generous
+# (several times what the design allows) and only tell "prompt" from "hung" on a loaded runner.
+PROMPT_S = 10.0
+
+
+def wait_until(predicate: Callable[[], bool], timeout: float = 30.0) -> bool:
+    """Poll until `predicate` holds; the timeout only bounds a failure, so it is generous."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if predicate():
@@ -95,7 +101,7 @@ def test_keyframe_image_query_is_answered(server_and_agent) -> None:
     request = protocol.KeyframeImageRequest(agent_id=AGENT, kf_id=17)
     start = time.monotonic()
     replies = server.query(
-        keys.agent_image(SESSION, AGENT, 17), protocol.encode(request), timeout_s=5.0
+        keys.agent_image(SESSION, AGENT, 17), protocol.encode(request), timeout_s=30.0
     )
     elapsed = time.monotonic() - start
     assert len(replies) == 1 and replies[0].ok
@@ -103,11 +109,11 @@ def test_keyframe_image_query_is_answered(server_and_agent) -> None:
     image = protocol.decode(replies[0].payload, expected=protocol.KeyframeImage)
     assert (image.agent_id, image.kf_id) == (AGENT, 17)
     assert image.rgb is not None and image.rgb.shape == (48, 64, 3)
-    assert elapsed < 2.0
+    assert elapsed < PROMPT_S  # the answer ends the query, not its timeout
     # Nobody serves another agent's images: an empty answer, not a wait for the timeout.
     start = time.monotonic()
-    assert server.query(keys.agent_image(SESSION, "agent-9", 1), timeout_s=5.0) == []
-    assert time.monotonic() - start < 1.0
+    assert server.query(keys.agent_image(SESSION, "agent-9", 1), timeout_s=30.0) == []
+    assert time.monotonic() - start < PROMPT_S
 
 
 def test_slow_subscriber_drops_without_blocking_publisher(server_and_agent) -> None:
@@ -117,27 +123,35 @@ def test_slow_subscriber_drops_without_blocking_publisher(server_and_agent) -> N
     for i in range(n):
         server.publish(lb_key("flood"), i.to_bytes(4, "little") + bytes(10_000))
     publish_s = time.perf_counter() - start
-    assert publish_s < 2.0  # the peer needs 300 x 20 ms = 6 s to handle them all
+    # The peer needs 300 x FLOOD_SLEEP_S = 30 s to handle them all; publishing takes well
+    # under a second, so the bound only catches a publisher that waits for the peer.
+    assert publish_s < PROMPT_S
 
     def peer_stats() -> dict:
-        [reply] = server.query(lb_key("stats"), timeout_s=2.0)
+        [reply] = server.query(lb_key("stats"), timeout_s=30.0)
         return json.loads(reply.payload)
 
     assert wait_until(
         lambda: peer_stats()["stats"]["received"].get(lb_key("flood"), {}).get("messages") == n,
-        timeout=10.0,
+        timeout=60.0,
     )
-    time.sleep(0.2)  # let the peer's worker finish the sample in hand
+
+    def settled() -> bool:  # every sample handled or dropped, none left in the queue
+        report = peer_stats()
+        return report["handled"] + report["stats"]["dropped"].get(lb_key("flood"), 0) == n
+
+    assert wait_until(settled, timeout=60.0)
     report = peer_stats()
     dropped = report["stats"]["dropped"][lb_key("flood")]
     assert dropped > 0
-    assert report["handled"] + dropped in (n, n - 1)  # one may still be in the callback
+    assert report["handled"] + dropped == n
     assert report["stats"]["received"][lb_key("flood")]["bytes"] == n * 10_004
 
 
 @pytest.mark.parametrize("peer_role", ["client", "router"])
-def test_killed_process_leaves_within_3_s(spawn, endpoint: str, peer_role: str) -> None:
-    """SIGKILL an agent (client) or the server (router): the other side sees it leave."""
+def test_killed_process_leaves_promptly(spawn, endpoint: str, peer_role: str) -> None:
+    """SIGKILL an agent (client) or the server (router): the other side sees it leave (the
+    socket closes; at the latest the 2 s lease ends)."""
     if peer_role == "router":
         peer = spawn("bus_peer.py", "--mode", "router", "--listen", endpoint)
         peer.expect("READY")
@@ -149,22 +163,22 @@ def test_killed_process_leaves_within_3_s(spawn, endpoint: str, peer_role: str) 
     seen = Joined()
     token = keys.alive_agent(SESSION, AGENT)
     bus.watch_liveliness(keys.alive_all(SESSION), seen.on_join, seen.on_leave)
-    assert wait_until(lambda: token in seen.joins, timeout=5.0)
+    assert wait_until(lambda: token in seen.joins)
 
     killed_at = time.monotonic()
     peer.kill()
-    assert wait_until(lambda: token in seen.leaves, timeout=3.0)
-    assert seen.leaves[token] - killed_at < 3.0
+    assert wait_until(lambda: token in seen.leaves)
+    assert seen.leaves[token] - killed_at < PROMPT_S
     start = time.monotonic()
     bus.close()
-    assert time.monotonic() - start < 3.0
+    assert time.monotonic() - start < bus.close_timeout_s + PROMPT_S
 
 
 def test_peer_exits_cleanly_and_its_token_leaves(server_and_agent) -> None:
     _, peer, seen = server_and_agent
     assert peer.stop() == 0
-    peer.expect("CLOSED", timeout=1.0)
-    assert wait_until(lambda: keys.alive_agent(SESSION, AGENT) in seen.leaves, timeout=3.0)
+    peer.expect("CLOSED", timeout=30.0)
+    assert wait_until(lambda: keys.alive_agent(SESSION, AGENT) in seen.leaves)
 
 
 def test_hung_process_leaves_after_its_lease(spawn, endpoint: str) -> None:
@@ -175,16 +189,18 @@ def test_hung_process_leaves_after_its_lease(spawn, endpoint: str) -> None:
     seen = Joined()
     token = keys.alive_agent(SESSION, AGENT)
     bus.watch_liveliness(keys.alive_agents(SESSION), seen.on_join, seen.on_leave)
-    assert wait_until(lambda: token in seen.joins, timeout=5.0)
+    assert wait_until(lambda: token in seen.joins)
     stopped_at = time.monotonic()
     peer.proc.send_signal(signal.SIGSTOP)
     try:
-        assert wait_until(lambda: token in seen.leaves, timeout=6.0)
-        assert 1.0 < seen.leaves[token] - stopped_at < 5.0
+        assert wait_until(lambda: token in seen.leaves)
+        # Not before the lease could have run out (load only makes it later); the upper
+        # bound is generous: the lease plus room for a loaded machine.
+        assert 1.0 < seen.leaves[token] - stopped_at < 2.0 + PROMPT_S
         # Publishing towards the hung peer must not wedge the publisher for long.
         start = time.monotonic()
         bus.publish(lb_key("flood"), bytes(1000))
-        assert time.monotonic() - start < 1.0
+        assert time.monotonic() - start < PROMPT_S
     finally:
         peer.proc.send_signal(signal.SIGCONT)
     bus.close()

@@ -13,6 +13,7 @@ import json
 import numpy as np
 import pytest
 import torch
+from fake_clock import FakeClock
 from spec_helpers import finetune_args, spec
 from voxel_place import voxel_descriptor
 
@@ -150,7 +151,7 @@ def make_backend(scenario, clock, **kw):
     args = dict(loop=LoopConfig(lambda_fine=0.9, lambda_coarse=0.85, icp_voxel_size=0.08),
                 federation=FederationConfig(finetune_iters=2, round_timeout_s=5.0),
                 pose_graph=PoseGraphConfig(), refinement=RefinementConfig(finetune_iters=2),
-                fetch_image=fetch, spec=SPEC, now=lambda: clock[0],
+                fetch_image=fetch, spec=SPEC, now=clock,
                 database=CosineDatabase(0.9, 0.85), decoders_factory=small_decoders,
                 **finetune_args())
     args.update(kw)
@@ -163,7 +164,7 @@ def rotation_deg(R):
 
 @pytest.fixture(scope="module")
 def run(scenario):
-    clock = [0.0]
+    clock = FakeClock(0.0)
     backend = make_backend(scenario, clock)
     streams = [agent_messages(scenario, a) for a in AGENTS]
     out = []
@@ -172,9 +173,9 @@ def run(scenario):
             if i < len(s):
                 out += backend.handle(s[i], nbytes=100)
         if i % 3 == 2:
-            clock[0] += 1.0
+            clock.advance(1.0)
             out += backend.step()
-    clock[0] += 1.0
+    clock.advance(1.0)
     out += backend.step()
     return backend, out, clock
 
@@ -235,7 +236,7 @@ def test_federated_round_closes_on_timeout(run, scenario):
     out = backend.step()
     assert not [o for o in out if isinstance(o.message, GroupDecoder)]
     assert group.group_id in backend.rounds
-    clock[0] += 6.0  # a1 stays silent past the 5 s timeout
+    clock.advance(6.0)  # a1 stays silent past the 5 s timeout
     out = backend.step()
     dec = [o.message for o in out if isinstance(o.message, GroupDecoder)]
     assert len(dec) == 1 and dec[0].members == ["a0"]

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from fake_clock import FakeClock
 from spec_helpers import finetune_args, spec
 from voxel_place import voxel_descriptor
 
@@ -96,12 +97,12 @@ def loop_config(**kw) -> LoopConfig:
                          "max_candidates": 2, **kw})
 
 
-def backend(scenario: dict, clock: list[float], fetch=None, **kw) -> Backend:
+def backend(scenario: dict, clock: FakeClock, fetch=None, **kw) -> Backend:
     loop = kw.pop("loop", loop_config())
     args = dict(loop=loop, federation=FederationConfig(enabled=False),
                 pose_graph=PoseGraphConfig(), refinement=RefinementConfig(finetune_iters=0),
                 fetch_image=fetch or (lambda agent, kf: image(scenario, kf)),
-                spec=spec(feature_dim=8), now=lambda: clock[0], **finetune_args(),
+                spec=spec(feature_dim=8), now=clock, **finetune_args(),
                 database=DescriptorDatabase(loop.lambda_fine, loop.lambda_coarse,
                                             loop.min_keyframe_gap, loop.max_candidates))
     args.update(kw)
@@ -113,13 +114,13 @@ def position_errors(poses: np.ndarray, truth: np.ndarray) -> np.ndarray:
 
 
 def test_single_agent_loop_closure_corrects_the_drift(scenario):
-    clock = [0.0]
+    clock = FakeClock(0.0)
     be = backend(scenario, clock)
     out = []
     for msg in messages(scenario):
         out += be.handle(msg)
         if isinstance(msg, FramePoses):
-            clock[0] += 1.0
+            clock.advance(1.0)
             out += be.step()
     accepted = [lp for lp in be.loops if lp.accepted]
     assert accepted, [(lp.kf_a, lp.kf_b, lp.reason) for lp in be.loops]
@@ -157,7 +158,7 @@ def test_single_agent_loop_closure_corrects_the_drift(scenario):
     assert np.mean(rot_after) < np.mean(rot_before) / 2
 
 
-def feed(be: Backend, scenario: dict, clock: list[float], until_kf: int) -> list:
+def feed(be: Backend, scenario: dict, clock: FakeClock, until_kf: int) -> list:
     """Keyframes 0..until_kf and their frames, a step after each."""
     out = []
     for msg in messages(scenario):
@@ -187,7 +188,7 @@ class FlakyImages:
 
 
 def test_unavailable_image_is_retried_until_the_pair_verifies(scenario):
-    clock = [0.0]
+    clock = FakeClock(0.0)
     fetch = FlakyImages(scenario, missing=0, failures=2)
     be = backend(scenario, clock, fetch=fetch, loop=loop_config(max_attempts=3),
                  retry_after_s=5.0)
@@ -200,29 +201,29 @@ def test_unavailable_image_is_retried_until_the_pair_verifies(scenario):
     other = backend(scenario, clock, fetch=fetch, loop=loop_config(max_attempts=3))
     other.load_state_dict(be.state_dict())
     assert other.book.attempts(other._candidates[0]) == 1
-    clock[0] += 5.0
+    clock.advance(5.0)
     be.step()
     assert fetch.requests.count(0) == 2 and not be.loops  # second failure: image fetched again
-    clock[0] += 5.0
+    clock.advance(5.0)
     be.step()
     assert fetch.requests.count(0) == 3
     (record,) = be.loops
     assert (record.kf_a, record.kf_b, record.accepted) == (5, 0, True)
     assert be.status()["loops"] == {"found": 1, "accepted": 1, "rejected": 0, "pending": 0,
                                     "retrying": 0}
-    clock[0] += 50.0
+    clock.advance(50.0)
     be.step()
     assert fetch.requests.count(0) == 3 and len(be.loops) == 1  # verified: never again
 
 
 def test_image_that_never_comes_rejects_the_pair_after_max_attempts(scenario):
-    clock = [0.0]
+    clock = FakeClock(0.0)
     fetch = FlakyImages(scenario, missing=0, failures=10**6)
     be = backend(scenario, clock, fetch=fetch, loop=loop_config(max_attempts=2),
                  retry_after_s=1.0)
     feed(be, scenario, clock, until_kf=5)
     for _ in range(4):
-        clock[0] += 1.0
+        clock.advance(1.0)
         be.step()
     assert fetch.requests.count(0) == 2
     (record,) = be.loops
@@ -232,7 +233,7 @@ def test_image_that_never_comes_rejects_the_pair_after_max_attempts(scenario):
 
 def test_verified_pair_is_not_verified_again(scenario):
     """A database that offers the same rejected pair with every keyframe: one registration."""
-    clock = [0.0]
+    clock = FakeClock(0.0)
     pair = LoopCandidate(AGENT, 5, AGENT, 0, 0.99, "fine")
 
     class Always:
@@ -275,7 +276,7 @@ def test_coarse_method_none_refines_from_the_identity(scenario):
         return out
 
     for refine_pose in (refine, None):
-        clock = [0.0]
+        clock = FakeClock(0.0)
         be = backend(scenario, clock, loop=loop_config(coarse_method="none"),
                      refine_pose=refine_pose)
         feed(be, scenario, clock, until_kf=5)
@@ -292,7 +293,7 @@ def test_coarse_method_none_refines_from_the_identity(scenario):
 def test_without_verification_the_identity_is_kept(scenario):
     """`loop.verify: false` (the paper preset): the same pair that fails verification at the
     identity becomes a loop at the identity, without an information matrix (sigmas weigh it)."""
-    clock = [0.0]
+    clock = FakeClock(0.0)
     be = backend(scenario, clock, loop=loop_config(coarse_method="none", verify=False),
                  refine_pose=None)
     feed(be, scenario, clock, until_kf=5)

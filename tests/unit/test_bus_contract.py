@@ -25,6 +25,10 @@ from cpslam.common.bus import (
     ZenohBus,
 )
 
+# `close()` returns within `close_timeout_s`; on a loaded 2-core runner a thread may start late,
+# so the tests allow this much more (still far below a hang).
+CLOSE_SLACK_S = 10.0
+
 
 def free_port() -> int:
     with socket.socket() as sock:
@@ -32,7 +36,8 @@ def free_port() -> int:
         return sock.getsockname()[1]
 
 
-def wait_until(predicate: Callable[[], bool], timeout: float = 3.0) -> bool:
+def wait_until(predicate: Callable[[], bool], timeout: float = 30.0) -> bool:
+    """Poll until `predicate` holds; the timeout only bounds a failure, so it is generous."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if predicate():
@@ -86,7 +91,7 @@ def test_publish_reaches_other_and_own_session(pair: Pair) -> None:
     pair.settle()
     pair.a.publish("t/data", b"\x00hello\xff")
     for sub in (remote, local):
-        sample = sub.get(timeout=3.0)
+        sample = sub.get(timeout=30.0)
         assert sample is not None
         assert sample.key == "t/data"
         assert sample.payload == b"\x00hello\xff"
@@ -113,7 +118,7 @@ def test_payload_buffer_is_copied(pair: Pair) -> None:
     buf = bytearray(b"before")
     pair.a.publish("t/buf", buf)
     buf[:] = b"after!"
-    sample = sub.get(timeout=3.0)
+    sample = sub.get(timeout=30.0)
     assert sample is not None and sample.payload == b"before"
 
 
@@ -165,10 +170,12 @@ def test_slow_consumer_drops_oldest_and_never_blocks_publisher(pair: Pair) -> No
     for i in range(n):
         pair.a.publish("t/slow", i.to_bytes(4, "little") + bytes(1000))
     publish_s = time.perf_counter() - start
-    # 200 x 50 ms of consumer work would be 10 s; the publisher must not wait for it.
-    assert publish_s < 1.0
-    assert wait_until(lambda: sub.delivered == n, timeout=5.0)
-    assert wait_until(lambda: len(sub) == 0 and len(handled) == n - sub.dropped, timeout=3.0)
+    # 200 x 50 ms of consumer work would be 10 s; the publisher must not wait for it. Real
+    # sockets for Zenoh: the bound only catches a publisher that waits (publishing takes tens
+    # of ms), whatever the load.
+    assert publish_s < 5.0
+    assert wait_until(lambda: sub.delivered == n, timeout=30.0)
+    assert wait_until(lambda: len(sub) == 0 and len(handled) == n - sub.dropped, timeout=30.0)
     assert sub.dropped > 0
     assert pair.b.stats()["dropped"]["t/slow"] == sub.dropped
     # Drop-oldest: the last publication is always among those handled, and order is kept.
@@ -198,7 +205,7 @@ def test_closed_subscription_stops_and_ends_iteration(pair: Pair) -> None:
     pair.a.publish("t/end", b"1")
     assert wait_until(lambda: len(got) == 1)
     sub.close()
-    reader.join(timeout=2.0)
+    reader.join(timeout=30.0)
     assert not reader.is_alive()
     pair.a.publish("t/end", b"2")
     time.sleep(0.1)
@@ -218,9 +225,9 @@ def test_query_gets_reply_with_payload(pair: Pair) -> None:
 
     pair.b.declare_queryable("agent/1/image/*", handler)
     pair.settle()
-    replies = pair.a.query("agent/1/image/17", b"png", timeout_s=3.0)
+    replies = pair.a.query("agent/1/image/17", b"png", timeout_s=30.0)
     assert replies == [Reply("agent/1/image/17", b"image:agent/1/image/17:png", True)]
-    assert pair.a.query("agent/1/image/18", timeout_s=3.0)[0].payload.endswith(b":-")
+    assert pair.a.query("agent/1/image/18", timeout_s=30.0)[0].payload.endswith(b":-")
     assert calls == [("agent/1/image/17", b"png"), ("agent/1/image/18", None)]
 
 
@@ -229,7 +236,7 @@ def test_wildcard_query_collects_all_queryables(pair: Pair) -> None:
     pair.b.declare_queryable("agent/2/status", lambda k, p: b"two")
     pair.settle()
     for bus in (pair.a, pair.b):
-        replies = bus.query("agent/*/status", timeout_s=3.0)
+        replies = bus.query("agent/*/status", timeout_s=30.0)
         assert sorted((r.key, r.payload) for r in replies) == [
             ("agent/1/status", b"one"),
             ("agent/2/status", b"two"),
@@ -243,28 +250,30 @@ def test_query_failures(pair: Pair, caplog: pytest.LogCaptureFixture) -> None:
     pair.b.declare_queryable("q/broken", broken)
     pair.b.declare_queryable("q/silent", lambda k, p: None)
     release = threading.Event()
-    pair.b.declare_queryable("q/hung", lambda k, p: b"late" if release.wait(3.0) else None)
+    pair.b.declare_queryable("q/hung", lambda k, p: b"late" if release.wait(60.0) else None)
     pair.settle()
     with caplog.at_level(logging.ERROR):
-        [reply] = pair.a.query("q/broken", timeout_s=3.0)
+        [reply] = pair.a.query("q/broken", timeout_s=30.0)
     assert not reply.ok and b"no such keyframe" in reply.payload
     assert "q/broken" in caplog.text
 
+    # Real sockets for Zenoh: the upper bounds are generous (the calls take milliseconds) and
+    # only tell "returned at once" from "waited out a 30 s timeout / a 60 s hung handler".
     start = time.monotonic()
-    assert pair.a.query("q/nobody", timeout_s=3.0) == []
-    assert pair.a.query("q/silent", timeout_s=3.0) == []
-    assert time.monotonic() - start < 1.0  # no waiting for the timeout when nobody answers
+    assert pair.a.query("q/nobody", timeout_s=30.0) == []
+    assert pair.a.query("q/silent", timeout_s=30.0) == []
+    assert time.monotonic() - start < 10.0  # no waiting for the timeout when nobody answers
 
     start = time.monotonic()
     assert pair.a.query("q/hung", timeout_s=0.4) == []
-    assert 0.3 < time.monotonic() - start < 2.0
+    assert 0.3 < time.monotonic() - start < 10.0  # the timeout, not the hung handler
     release.set()
 
 
 def test_closed_queryable_no_longer_answers(pair: Pair) -> None:
     queryable = pair.b.declare_queryable("q/once", lambda k, p: b"yes")
     pair.settle()
-    assert len(pair.a.query("q/once", timeout_s=3.0)) == 1
+    assert len(pair.a.query("q/once", timeout_s=30.0)) == 1
     queryable.close()
     queryable.close()
     pair.settle()
@@ -338,7 +347,7 @@ def test_byte_counters(pair: Pair) -> None:
         pair.a.publish("c/data", bytes(100))
     pair.a.publish("c/other", bytes(7))
     assert wait_until(lambda: sub.delivered == 4)
-    pair.a.query("c/q/1", b"abc", timeout_s=3.0)
+    pair.a.query("c/q/1", b"abc", timeout_s=30.0)
 
     a, b = pair.a.stats(), pair.b.stats()
     assert a["sent"]["c/data"] == {"messages": 3, "bytes": 300}
@@ -355,14 +364,15 @@ def test_close_is_idempotent_bounded_and_final(pair: Pair) -> None:
     sub = pair.b.subscribe("z/x")
     pair.b.declare_liveliness("alive/z")
     waiter_result: list[Sample | None] = []
-    waiter = threading.Thread(target=lambda: waiter_result.append(sub.get(timeout=10.0)))
+    waiter = threading.Thread(target=lambda: waiter_result.append(sub.get(timeout=60.0)))
     waiter.start()
     start = time.monotonic()
     with pair.b:
         pass
     pair.b.close()
-    assert time.monotonic() - start < 3.0
-    waiter.join(timeout=2.0)
+    # Within close_timeout_s by design; the slack is for a loaded machine (real sockets).
+    assert time.monotonic() - start < pair.b.close_timeout_s + CLOSE_SLACK_S
+    waiter.join(timeout=30.0)
     assert waiter_result == [None]
     assert pair.b.closed
     with pytest.raises(BusClosedError):
@@ -383,4 +393,4 @@ def test_close_after_peer_vanished_is_bounded(pair: Pair) -> None:
     time.sleep(0.1)
     start = time.monotonic()
     pair.b.close()
-    assert time.monotonic() - start < 3.0
+    assert time.monotonic() - start < pair.b.close_timeout_s + CLOSE_SLACK_S

@@ -79,25 +79,31 @@ def test_queue_size_must_be_positive() -> None:
         Subscription("k", queue_size=0)
 
 
-def test_close_without_wait_returns_at_once_and_join_waits_for_the_worker() -> None:
+def test_close_without_wait_returns_at_once_and_join_waits_for_the_worker(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
     release, started = threading.Event(), threading.Event()
 
     def busy(_s: Sample) -> None:
         started.set()
-        release.wait(10.0)
+        release.wait(60.0)
 
     sub = Subscription("k/*", callback=busy)
     sub.deliver(sample(1))
-    assert started.wait(2.0)
-    t0 = time.monotonic()
+    assert started.wait(30.0)
+    joins: list[float] = []
+    monkeypatch.setattr(sub, "join", joins.append)
     sub.close(timeout=0)
-    assert time.monotonic() - t0 < 0.1 and sub.closed
+    assert sub.closed and joins == []  # timeout 0: the busy worker is not waited for
+    monkeypatch.undo()
     assert sub.join(time.monotonic() + 0.05) is False  # still busy
     release.set()
-    assert sub.join(time.monotonic() + 2.0) is True
+    assert sub.join(time.monotonic() + 30.0) is True
 
 
-def test_bus_close_joins_hung_callbacks_against_one_deadline(caplog) -> None:
+def test_bus_close_joins_hung_callbacks_against_one_deadline(
+    caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
     from cpslam.common.bus import InMemoryBus
 
     release = threading.Event()
@@ -113,14 +119,24 @@ def test_bus_close_joins_hung_callbacks_against_one_deadline(caplog) -> None:
         bus.subscribe(f"t/{i}", callback=hung)
         bus.publish(f"t/{i}", b"x")
     for _ in range(n):
-        assert running.acquire(timeout=2.0)
+        assert running.acquire(timeout=30.0)
+    deadlines: list[float] = []
+    join = Subscription.join
+
+    def spy(self: Subscription, deadline: float) -> bool:
+        deadlines.append(deadline)
+        return join(self, deadline)
+
+    monkeypatch.setattr(Subscription, "join", spy)
     t0 = time.monotonic()
     with caplog.at_level(logging.WARNING):
         bus.close()
-    elapsed = time.monotonic() - t0
+    t1 = time.monotonic()
     release.set()
-    # One shared 0.5 s deadline, not 0.5 s (or the old 5 s) per hung callback.
-    assert 0.4 < elapsed < 1.0, elapsed
+    # One shared 0.5 s deadline, not 0.5 s (or the old 5 s) per hung callback: the logic is
+    # asserted on the deadlines handed out, not on how long a loaded machine took.
+    assert len(deadlines) == n and len(set(deadlines)) == 1, deadlines
+    assert t0 + 0.5 <= deadlines[0] <= t1 + 0.5
     assert len([r for r in caplog.records if "still running at close" in r.getMessage()]) == n
 
 

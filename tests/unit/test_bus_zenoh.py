@@ -59,7 +59,9 @@ def test_client_without_server_fails_within_open_timeout() -> None:
     start = time.monotonic()
     with pytest.raises(BusError, match="could not open"):
         ZenohBus(mode="client", connect=[f"tcp/127.0.0.1:{free_port()}"], open_timeout_s=0.5)
-    assert time.monotonic() - start < 3.0
+    # A real socket: the bound only catches an open that ignores its timeout (hangs), with
+    # room for a loaded machine; the timeout itself is 0.5 s.
+    assert time.monotonic() - start < 10.0
 
 
 def test_client_started_before_server_connects_once_it_listens() -> None:

@@ -7,37 +7,30 @@ import signal
 import threading
 
 import pytest
+from fake_clock import FakeClock
 from typer.testing import CliRunner
 
 from cpslam.server.cli import REPEAT_WINDOW_S, app, signal_handler
 
 
-class Clock:
-    def __init__(self) -> None:
-        self.now = 100.0
-
-    def __call__(self) -> float:
-        return self.now
-
-
-def test_the_same_signal_twice_at_once_is_one_request() -> None:
-    stop, clock = threading.Event(), Clock()
+def test_the_same_signal_twice_at_once_is_one_request(fake_clock: FakeClock) -> None:
+    stop, clock = threading.Event(), fake_clock
     handler = signal_handler(stop, clock)
     handler(signal.SIGTERM, None)
     assert stop.is_set()
-    clock.now += 0.05
+    clock.advance(0.05)
     handler(signal.SIGTERM, None)  # e.g. `timeout`: to the process, then to its group
-    clock.now += REPEAT_WINDOW_S
+    clock.advance(REPEAT_WINDOW_S)
     with pytest.raises(SystemExit) as exit_info:
         handler(signal.SIGTERM, None)  # a deliberate second request
     assert exit_info.value.code == 130
 
 
-def test_a_different_second_signal_exits_at_once() -> None:
-    stop, clock = threading.Event(), Clock()
+def test_a_different_second_signal_exits_at_once(fake_clock: FakeClock) -> None:
+    stop, clock = threading.Event(), fake_clock
     handler = signal_handler(stop, clock)
     handler(signal.SIGTERM, None)
-    clock.now += 0.1
+    clock.advance(0.1)
     with pytest.raises(SystemExit) as exit_info:
         handler(signal.SIGINT, None)
     assert exit_info.value.code == 130
