@@ -173,15 +173,16 @@ class PoseGraph:
 
     def __init__(
         self,
-        robust_kernel: RobustKernel = "cauchy",
-        kernel_scale: float = 1.0,
-        seq_sigma_t: float = 0.01,
-        seq_sigma_r: float = 0.01,
-        loop_sigma_t: float = 0.05,
-        loop_sigma_r: float = 0.05,
-        max_iters: int = 100,
-        rel_tol: float = 1e-5,
-        all_frames: bool = True,
+        *,
+        robust_kernel: RobustKernel,
+        kernel_scale: float,
+        seq_sigma_t: float,
+        seq_sigma_r: float,
+        loop_sigma_t: float,
+        loop_sigma_r: float,
+        max_iters: int,
+        rel_tol: float,
+        all_frames: bool,
     ) -> None:
         if robust_kernel not in ("cauchy", "huber", "gnc", "none"):
             raise ValueError(
@@ -218,18 +219,9 @@ class PoseGraph:
 
     @classmethod
     def from_config(cls, cfg: PoseGraphConfig) -> PoseGraph:
-        """A graph with the settings of the ``pose_graph`` config section."""
-        return cls(
-            robust_kernel=cfg.robust_kernel,
-            kernel_scale=cfg.kernel_scale,
-            seq_sigma_t=cfg.seq_sigma_t,
-            seq_sigma_r=cfg.seq_sigma_r,
-            loop_sigma_t=cfg.loop_sigma_t,
-            loop_sigma_r=cfg.loop_sigma_r,
-            max_iters=cfg.max_iters,
-            rel_tol=cfg.rel_tol,
-            all_frames=cfg.all_frames,
-        )
+        """A graph with the settings of the ``pose_graph`` config section (its fields are the
+        constructor's arguments)."""
+        return cls(**cfg.model_dump())
 
     # ---------------------------------------------------------------------------------------
     # building

@@ -95,10 +95,11 @@ class DescriptorDatabase:
 
     def __init__(
         self,
-        lambda_fine: float = 0.9,
-        lambda_coarse: float = 0.8,
-        min_keyframe_gap: int = 3,
-        max_candidates: int = 3,
+        *,
+        lambda_fine: float,
+        lambda_coarse: float,
+        min_keyframe_gap: int,
+        max_candidates: int,
         nms_radius: int = 2,
     ) -> None:
         if not -1.0 <= lambda_coarse <= lambda_fine <= 1.0:

@@ -103,8 +103,7 @@ def backend(scenario: dict, clock: FakeClock, fetch=None, **kw) -> Backend:
                 pose_graph=PoseGraphConfig(), refinement=RefinementConfig(finetune_iters=0),
                 fetch_image=fetch or (lambda agent, kf: image(scenario, kf)),
                 spec=spec(feature_dim=8), now=clock, **finetune_args(),
-                database=DescriptorDatabase(loop.lambda_fine, loop.lambda_coarse,
-                                            loop.min_keyframe_gap, loop.max_candidates))
+                database=DescriptorDatabase.from_config(loop))
     args.update(kw)
     return Backend(**args)
 

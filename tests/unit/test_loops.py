@@ -11,6 +11,12 @@ from cpslam.server.loops import DescriptorDatabase, LoopBook, LoopCandidate
 D = 64
 
 
+def database(**changes) -> DescriptorDatabase:
+    """The database with the thresholds these tests were written for, and `changes`."""
+    return DescriptorDatabase(**{"lambda_fine": 0.9, "lambda_coarse": 0.8, "min_keyframe_gap": 3,
+                                 "max_candidates": 3, **changes})
+
+
 def unit(rng: np.random.Generator, n: int | None = None) -> np.ndarray:
     v = rng.standard_normal((n or 1, D)).astype(np.float32)
     v /= np.linalg.norm(v, axis=1, keepdims=True)
@@ -31,7 +37,7 @@ def rng() -> np.random.Generator:
 
 
 def test_thresholds_classify_fine_and_coarse(rng):
-    db = DescriptorDatabase(lambda_fine=0.9, lambda_coarse=0.8, max_candidates=5, nms_radius=0)
+    db = database(lambda_fine=0.9, lambda_coarse=0.8, max_candidates=5, nms_radius=0)
     place = unit(rng)
     for kf, cos in enumerate([0.95, 0.85, 0.75]):
         db.add("b", kf * 10, near(place, cos, rng), group="gb")
@@ -43,7 +49,7 @@ def test_thresholds_classify_fine_and_coarse(rng):
 
 
 def test_same_agent_recent_keyframes_are_excluded(rng):
-    db = DescriptorDatabase(lambda_fine=0.9, lambda_coarse=0.5, min_keyframe_gap=3,
+    db = database(lambda_fine=0.9, lambda_coarse=0.5, min_keyframe_gap=3,
                             max_candidates=10, nms_radius=0)
     place = unit(rng)
     # Ids are frame indices 0, 50, ..., 250: the gap counts keyframes, not id differences.
@@ -57,7 +63,7 @@ def test_same_agent_recent_keyframes_are_excluded(rng):
 
 
 def test_immediate_neighbours_excluded_even_with_zero_gap(rng):
-    db = DescriptorDatabase(lambda_coarse=0.5, min_keyframe_gap=0, max_candidates=10,
+    db = database(lambda_coarse=0.5, min_keyframe_gap=0, max_candidates=10,
                             nms_radius=0)
     place = unit(rng)
     for k in range(4):
@@ -66,7 +72,7 @@ def test_immediate_neighbours_excluded_even_with_zero_gap(rng):
 
 
 def test_non_maximum_suppression_keeps_one_per_place(rng):
-    db = DescriptorDatabase(lambda_coarse=0.5, max_candidates=5, nms_radius=2)
+    db = database(lambda_coarse=0.5, max_candidates=5, nms_radius=2)
     place, other = unit(rng), unit(rng)
     # Agent b saw `place` at keyframes 10..14 (best at 12) and again much later at 40.
     for kf, cos in zip(range(10, 15), [0.8, 0.9, 0.97, 0.92, 0.85], strict=True):
@@ -84,7 +90,7 @@ def test_non_maximum_suppression_keeps_one_per_place(rng):
 
 
 def test_max_candidates_and_group_filter(rng):
-    db = DescriptorDatabase(lambda_coarse=0.5, max_candidates=2, nms_radius=0)
+    db = database(lambda_coarse=0.5, max_candidates=2, nms_radius=0)
     place = unit(rng)
     for i, agent in enumerate(["b", "c", "d"]):
         db.add(agent, 0, near(place, 0.9 - 0.1 * i, rng), group=f"g{agent}")
@@ -94,7 +100,7 @@ def test_max_candidates_and_group_filter(rng):
 
 
 def test_inter_agent_candidates_and_regroup(rng):
-    db = DescriptorDatabase(lambda_coarse=0.8, min_keyframe_gap=3)
+    db = database(lambda_coarse=0.8, min_keyframe_gap=3)
     places = unit(rng, 6)
     for k in range(6):
         db.add("a", k, near(places[k], 0.99, rng), group="ga")
@@ -114,7 +120,7 @@ def test_inter_agent_candidates_and_regroup(rng):
 
 
 def test_replacing_a_descriptor_and_growth(rng):
-    db = DescriptorDatabase(lambda_coarse=0.9, nms_radius=0, max_candidates=50)
+    db = database(lambda_coarse=0.9, nms_radius=0, max_candidates=50)
     vecs = unit(rng, 100)  # beyond the initial capacity of 16: the storage doubles
     for k, v in enumerate(vecs):
         db.add("a", k, v, group="g")
@@ -128,7 +134,7 @@ def test_replacing_a_descriptor_and_growth(rng):
 
 
 def test_bad_descriptors_raise(rng):
-    db = DescriptorDatabase()
+    db = database()
     db.add("a", 0, unit(rng), group="g")
     with pytest.raises(ValueError, match="length 3, expected 64"):
         db.add("a", 1, np.ones(3), group="g")
@@ -137,18 +143,18 @@ def test_bad_descriptors_raise(rng):
     with pytest.raises(ValueError, match="finite"):
         db.add("a", 1, np.full(D, np.nan), group="g")
     with pytest.raises(ValueError, match="lambda_coarse"):
-        DescriptorDatabase(lambda_fine=0.7, lambda_coarse=0.8)
-    assert DescriptorDatabase().query("a", 0, unit(rng)) == []
+        database(lambda_fine=0.7, lambda_coarse=0.8)
+    assert database().query("a", 0, unit(rng)) == []
 
 
 def test_state_round_trip(rng):
-    db = DescriptorDatabase(lambda_coarse=0.3, min_keyframe_gap=2, nms_radius=1)
+    db = database(lambda_coarse=0.3, min_keyframe_gap=2, nms_radius=1)
     for agent, group in (("a", "g1"), ("b", "g1"), ("c", "g2")):
         for k in range(5):
             db.add(agent, 10 * k, unit(rng), group=group)
     q = unit(rng)
     state = db.state_dict()
-    copy = DescriptorDatabase(lambda_coarse=0.3, min_keyframe_gap=2, nms_radius=1)
+    copy = database(lambda_coarse=0.3, min_keyframe_gap=2, nms_radius=1)
     copy.load_state_dict(state)
     assert len(copy) == len(db) == 15
     assert copy.groups == db.groups
@@ -261,7 +267,7 @@ def test_real_descriptor_finds_the_loop_closure(tmp_path):
     kf_frames = list(range(0, len(seq), 10))
     descriptors = DescriptorExtractor(seed=0).compute_batch([seq[i].rgb for i in kf_frames])
     # Thresholds calibrated for this descriptor (docs/loops.md), not the config defaults.
-    db = DescriptorDatabase(lambda_fine=0.8, lambda_coarse=0.65, min_keyframe_gap=3)
+    db = database(lambda_fine=0.8, lambda_coarse=0.65, min_keyframe_gap=3)
     found = []
     for kf, d in enumerate(descriptors):
         found.append(db.query("a", kf, d))

@@ -20,6 +20,11 @@ N_KF = 40
 SIDE = 4.0
 
 
+def graph_with(**changes) -> PoseGraph:
+    """A graph with the `pose_graph` section's defaults and `changes`."""
+    return PoseGraph(**{**PoseGraphConfig().model_dump(), **changes})
+
+
 def square(n: int, side: float = SIDE) -> np.ndarray:
     """``T_world_cam [n, 4, 4]`` walking a square counter-clockwise, camera looking ahead."""
     per = n // 4
@@ -74,7 +79,7 @@ def scene():
 
 def build(scene, kernel: str, false_loop: bool = False, scale: float = 1.0) -> PoseGraph:
     gt, meas, track, loops = scene
-    graph = PoseGraph(robust_kernel=kernel, kernel_scale=scale, all_frames=False)
+    graph = graph_with(robust_kernel=kernel, kernel_scale=scale, all_frames=False)
     for i in range(N_KF):
         graph.add_keyframe("a", i, track[i])
     for i, m in enumerate(meas):
@@ -182,7 +187,7 @@ def test_two_agents_joined_by_a_loop_share_one_frame(scene):
     i0, j0, T0 = inter[0]
     T_a_worldb = compose(track_a[i0], T0, invert(track_b_own[j0]))
 
-    graph = PoseGraph(robust_kernel="cauchy", all_frames=False)
+    graph = graph_with(robust_kernel="cauchy", all_frames=False)
     graph.add_trajectory("a", agent_trajectory(track_a))
     graph.add_trajectory("b", agent_trajectory(track_b_own), T_group_world=T_a_worldb)
     for i, j, T in loops_a:
@@ -240,7 +245,7 @@ def test_all_frames_and_keyframes_only_agree():
     loops = true_loops(gt[kf_frames], seed=6)
     corrected = {}
     for all_frames in (False, True):
-        graph = PoseGraph(seq_sigma_t=0.004, seq_sigma_r=0.004, all_frames=all_frames)
+        graph = graph_with(seq_sigma_t=0.004, seq_sigma_r=0.004, all_frames=all_frames)
         graph.add_trajectory("a", traj)
         for i, j, T in loops:
             graph.add_loop("a", i, "a", j, T)
@@ -282,7 +287,7 @@ def test_g2o_round_trip(scene, tmp_path):
 
 def test_loop_information_matrix_matches_sigmas(scene):
     a = build(scene, "cauchy")
-    b = PoseGraph(robust_kernel="cauchy", all_frames=False)
+    b = graph_with(robust_kernel="cauchy", all_frames=False)
     _, meas, track, loops = scene
     for i in range(N_KF):
         b.add_keyframe("a", i, track[i])
@@ -317,9 +322,9 @@ def test_bad_input_is_refused(scene):
     with pytest.raises(ValueError, match="positive definite"):
         graph.add_loop("a", 0, "a", 20, np.eye(4), information=-np.eye(6))
     with pytest.raises(ValueError, match="robust_kernel"):
-        PoseGraph(robust_kernel="tukey")
+        graph_with(robust_kernel="tukey")
     with pytest.raises(ValueError, match="no nodes"):
-        PoseGraph().optimize()
+        graph_with().optimize()
 
 
 def test_from_config_takes_the_section_values():
@@ -339,7 +344,7 @@ def test_from_config_takes_the_section_values():
 def test_rerun_after_a_new_loop_starts_from_the_corrected_map(scene):
     gt, meas, track, loops = scene
     one_shot = keyframe_poses(build(scene, "cauchy").optimize())
-    graph = PoseGraph(robust_kernel="cauchy", all_frames=False)
+    graph = graph_with(robust_kernel="cauchy", all_frames=False)
     for i in range(N_KF):
         graph.add_keyframe("a", i, track[i])
     for i, m in enumerate(meas):
@@ -358,7 +363,7 @@ def test_rerun_after_a_new_loop_starts_from_the_corrected_map(scene):
 
 def test_sigmas_are_translation_first():
     # The tracking edge is sure of translation, the loop of rotation: each should win its part.
-    graph = PoseGraph(robust_kernel="none", all_frames=False)
+    graph = graph_with(robust_kernel="none", all_frames=False)
     graph.add_keyframe("a", 0, np.eye(4))
     graph.add_keyframe("a", 1, se3_exp(np.r_[1.0, 0, 0, 0, 0, 0]))
     graph.add_sequential("a", 0, 1, se3_exp(np.r_[1.0, 0, 0, 0, 0, 0]), sigma_t=1e-3, sigma_r=1.0)
@@ -370,7 +375,7 @@ def test_sigmas_are_translation_first():
 
 
 def test_g2o_information_order(tmp_path):
-    graph = PoseGraph(all_frames=False)
+    graph = graph_with(all_frames=False)
     graph.add_keyframe("a", 0, np.eye(4))
     graph.add_keyframe("a", 1, se3_exp(np.r_[1.0, 0, 0, 0, 0, 0.1]))
     graph.add_sequential("a", 0, 1, se3_exp(np.r_[1.0, 0, 0, 0, 0, 0.1]), 0.02, 0.005)
