@@ -111,7 +111,6 @@ class Backend:
         self.pg_cfg, self.refine_cfg = pose_graph, refinement
         self.now = now
         self.spec = spec
-        self.feature_dim, self.cell_size = spec.feature_dim, spec.grid_size
         self.finetune_lr_features = finetune_lr_features
         shapes = None
         if decoders_factory is not None:
@@ -271,8 +270,8 @@ class Backend:
         out = []
         for m in group.members:
             rec = self.registry.agents[m]
-            pm = rec.points.to_point_map(rec.index, self.kf_poses(m), self.feature_dim,
-                                         self.cell_size)
+            pm = rec.points.to_point_map(rec.index, self.kf_poses(m), self.spec.feature_dim,
+                                         self.spec.grid_size)
             out.append(MemberMap(m, rec.index, pm))
         return out
 
@@ -343,7 +342,7 @@ class Backend:
         t1 = time.perf_counter()
         maps, decoders, refined = refine_maps(
             groups, self.member_maps, lambda a: self.registry.agents[a].decoder,
-            self.federator.finetune, self.feature_dim, self.cell_size,
+            self.federator.finetune, self.spec.feature_dim, self.spec.grid_size,
             grid_filter=self.refine_cfg.grid_filter, finetune_iters=self.refine_cfg.finetune_iters,
             lr_features=self.finetune_lr_features)
         timings = {"final_pose_graph_s": t_graph, "refinement_s": time.perf_counter() - t1}

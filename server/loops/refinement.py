@@ -89,7 +89,6 @@ class PoseRefiner:
     ) -> None:
         self.registry = registry
         self.spec = spec
-        self.feature_dim, self.cell_size = spec.feature_dim, spec.grid_size
         self.tracker_args: dict[str, Any] = dict(tracker_args)
         Tracker(Intrinsics(1.0, 1.0, 0.0, 0.0, 1, 1), spec, **self.tracker_args)  # checks
         self.params = params
@@ -136,7 +135,7 @@ class PoseRefiner:
             return f"keyframe {cand.agent_b}/{cand.kf_b} unknown"
         if rec.decoder is None:
             return f"no decoder weights from agent {cand.agent_b} yet"
-        point_map = rec.submap(self.feature_dim, self.cell_size)
+        point_map = rec.submap(self.spec.feature_dim, self.spec.grid_size)
         if cand.agent_a == cand.agent_b:  # keep the points mapped nearer to b than to a
             kfs = np.asarray(rec.kf_ids)
             i_a, i_b = np.searchsorted(kfs, [int(cand.kf_a), int(cand.kf_b)])

@@ -219,10 +219,10 @@ def test_fused_map_is_grid_filtered(run):
     backend, _, _ = run
     group = backend.groups.group_of("a0")
     members = backend.member_maps(group)
-    fused = fuse(members, F, backend.cell_size)
+    fused = fuse(members, F, backend.spec.grid_size)
     assert 0 < len(fused) < sum(len(m.point_map) for m in members)
     xyz = fused.xyz_world().double().numpy()
-    assert grid_winners(xyz, backend.cell_size).all()
+    assert grid_winners(xyz, backend.spec.grid_size).all()
 
 
 def test_federated_round_closes_on_timeout(run, scenario):
