@@ -1,37 +1,37 @@
-"""Field specs for unit tests: a preset's `field` section with a test's own sizes."""
+"""Field specs and settings for unit tests: a preset's sections with a test's own values."""
 
 from __future__ import annotations
 
 from dataclasses import replace
 from functools import cache
 
-from cpslam.common.config import load_config
+from cpslam.common.config import CpslamConfig, load_config
 from cpslam.common.field import FieldSpec
 from cpslam.common.field_config import field_spec, mapper_args_from_config, tracker_args_from_config
 
 
 @cache
-def _preset_spec(preset: str) -> FieldSpec:
-    return field_spec(load_config(preset, env={}).field)
+def _config(preset: str) -> CpslamConfig:
+    return load_config(preset, env={})  # frozen: safe to share between tests
 
 
 def spec(preset: str = "gpu", **changes: object) -> FieldSpec:
     """The preset's field spec (default `gpu`: the schema defaults) with `changes`."""
-    return replace(_preset_spec(preset), **changes)
+    return replace(field_spec(_config(preset).field), **changes)
 
 
 def tracker_args(preset: str = "gpu", **changes: object) -> dict:
     """`Tracker` keywords from the preset's `tracking` section, with `changes`."""
-    return {**tracker_args_from_config(load_config(preset, env={}).tracking), **changes}
+    return {**tracker_args_from_config(_config(preset).tracking), **changes}
 
 
 def mapper_args(preset: str = "gpu", **changes: object) -> dict:
     """`Mapper` keywords from the preset's `mapping` section, with `changes`."""
-    return {**mapper_args_from_config(load_config(preset, env={}).mapping), **changes}
+    return {**mapper_args_from_config(_config(preset).mapping), **changes}
 
 
 def finetune_args(preset: str = "gpu", **changes: object) -> dict:
     """`Backend`'s fine-tune keywords (the `mapping` section's rates, the run's seed)."""
-    cfg = load_config(preset, env={})
+    cfg = _config(preset)
     return {"finetune_lr": cfg.mapping.lr_decoders, "finetune_lr_features": cfg.mapping.lr_features,
             "color_weight": cfg.mapping.color_weight, "seed": cfg.run.seed, **changes}
