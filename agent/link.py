@@ -140,6 +140,12 @@ class AgentLink:
             out += self.flush()
         return out
 
+    def finish(self) -> list[Message]:
+        """End of the stream (mapping drained): a last sub-map delta when mapping changed the
+        map since the previous one, then the frame poses not sent yet."""
+        delta = self._submap_delta()
+        return ([delta] if delta is not None else []) + self.flush()
+
     def flush(self) -> list[Message]:
         """The frame poses not sent yet (call at the end of the stream)."""
         if not self._pending_frames:
@@ -237,6 +243,11 @@ class AgentLink:
             logger.debug("agent %s: ignoring server update seq %d", self.agent_id, update.seq)
             return False
         self.update_seq = int(update.seq)
+        with self.odometry.editing():
+            self._apply_update(update)
+        return True
+
+    def _apply_update(self, update: ServerUpdate) -> None:
         T_new_old = compose(update.T_group_agent, invert(self.T_group_agent))
         if not np.allclose(T_new_old, np.eye(4), atol=1e-12):
             self._transform_world(T_new_old)
@@ -260,7 +271,6 @@ class AgentLink:
         waiting = self._decoders_waiting.pop(self.group_id, None)
         if waiting is not None:
             self.apply_decoder(waiting)
-        return True
 
     def apply_decoder(self, msg: GroupDecoder) -> bool:
         """Load a newer shared decoder of this agent's group; one of another group is kept in
@@ -272,10 +282,10 @@ class AgentLink:
             return False
         if msg.round <= self.round:
             return False
-        decoders = self.odometry.decoders
-        device = next(iter(decoders.state_dict().values())).device
-        decoders.load_state_dict({k: torch.as_tensor(v, device=device)
-                                  for k, v in msg.tensors.items()})
+        with self.odometry.editing() as state:
+            device = next(iter(state.decoders.state_dict().values())).device
+            state.decoders.load_state_dict({k: torch.as_tensor(v, device=device)
+                                            for k, v in msg.tensors.items()})
         self.round = int(msg.round)
         self._mappings, self._samples = 0, 0
         self.odometry.mark_fused()

@@ -99,7 +99,9 @@ class AgentNode:
         return self
 
     def close(self) -> None:
-        """Withdraw token, queryable and subscriptions (idempotent)."""
+        """Withdraw token, queryable and subscriptions, stop the mapping thread
+        (idempotent)."""
+        self.odometry.close()
         for handle in self._handles:
             (handle.close if hasattr(handle, "close") else handle.undeclare)()
         self._handles = []
@@ -153,8 +155,12 @@ class AgentNode:
         return n
 
     def flush(self) -> None:
-        """Send the frame poses not sent yet (end of the stream)."""
-        self.send(self.link.flush())
+        """End of the stream: let the mapping thread finish, send what it changed since the
+        last sub-map delta and the frame poses not sent yet."""
+        with self._lock:
+            self.odometry.drain()
+            out = self.link.finish()
+        self.send(out)
 
     def resend(self) -> int:
         """Publish every unacknowledged message again (after a reconnect)."""

@@ -15,15 +15,24 @@ Anchoring: new points are anchored to the LATEST keyframe (the first frame is al
 their anchor's view, and all points created in one keyframe window move together when the
 server corrects that keyframe; the keyframe records their ids.
 
+Schedule (`run.schedule`, `cpslam.agent.schedule`): "lockstep" runs (3) and (4) inline, so a
+CPU run repeats bit for bit; "concurrent" hands them to a mapping thread and tracks the next
+frame at once, against the map the mapping thread published last. Then a frame's result
+reports the mapping calls that finished while it was processed, and a mapping frame's
+refined pose replaces its tracked one in the trajectory when its call finishes. Whatever
+changes the map from outside (the server's corrections, foreign points, shared decoders)
+goes through `editing()`, which first lets every handed-over call finish.
+
 Ground truth (`frame.gt_pose`) is never read here. Random draws (pixels, ray jitter) come
-from a torch.Generator seeded with (run.seed, frame index), so a CPU run is reproducible.
+from a torch.Generator seeded with (run.seed, frame index), so a lock-step CPU run is
+reproducible.
 """
 
 from __future__ import annotations
 
-import itertools
 import logging
 import time
+from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -32,7 +41,9 @@ import torch
 
 from cpslam.agent.keyframes import KeyframeStore
 from cpslam.agent.mapper import Mapper, View
+from cpslam.agent.motion import MOTION_MODELS, motion_guesses
 from cpslam.agent.recovery import Frame, Recovery
+from cpslam.agent.schedule import MapJob, MapOutcome, MapSchedule, MapState, run_map_job
 from cpslam.common.camera import Intrinsics
 from cpslam.common.datasets import RGBDFrame
 from cpslam.common.field import Decoders, FeatureCNN, NeuralPointMap
@@ -60,9 +71,10 @@ class FrameResult:
 
     map_time_s is the whole mapping call (adding points, co-visibility, optimisation);
     map_optimise_time_s only its `map_steps` optimisation steps, so a per-step time is
-    map_optimise_time_s / map_steps. track_event is "" (tracked and healthy, or recovery
-    off), "recovered" or "lost" (see `cpslam.agent.recovery`); track_time_s includes the
-    recovery.
+    map_optimise_time_s / map_steps; with the concurrent schedule they sum the calls that
+    finished while this frame was processed (on the mapping thread). track_event is ""
+    (tracked and healthy, or recovery off), "recovered" or "lost" (see
+    `cpslam.agent.recovery`); track_time_s includes the recovery.
     """
 
     index: int
@@ -115,15 +127,22 @@ class Odometry:
         seed: int,
         agent_id: int,
         recovery: Recovery | None,
+        schedule: str = "lockstep",
+        max_pending_keyframes: int = 2,
+        mapping_threads: int | None = None,
     ) -> None:
-        if init not in ("zero_motion", "constant_velocity"):
+        if init not in MOTION_MODELS:
             raise ValueError(f"Odometry: init must be zero_motion or constant_velocity, "
                              f"got {init!r}")
         if map_every < 1 or kf_every < 1:
             raise ValueError(f"Odometry: map_every and kf_every must be >= 1, got "
                              f"{map_every}, {kf_every}")
         self.intrinsics = intrinsics
-        self.point_map, self.decoders, self.cnn = point_map, decoders, cnn
+        self.cnn = cnn
+        self.maps = MapSchedule(MapState(point_map, decoders), self._run_job,
+                                schedule=schedule, max_pending_keyframes=max_pending_keyframes,
+                                threads=mapping_threads)
+        self._unreported: list[MapOutcome] = []  # finished outside `step`, reported next
         self.tracker, self.mapper, self.keyframes = tracker, mapper, keyframes
         self.map_every, self.kf_every = map_every, kf_every
         self.iters_first, self.iters, self.iters_after_fusion = iters_first, iters, \
@@ -173,6 +192,8 @@ class Odometry:
             seed=seed, agent_id=agent_id,
             recovery=Recovery.from_config(cfg.recovery, tr.iters) if cfg.recovery.enabled
             else None,
+            schedule=cfg.run.schedule, max_pending_keyframes=mp.max_pending_keyframes,
+            mapping_threads=_split_threads() if cfg.run.schedule == "concurrent" else None,
         )
 
     # ---------------------------------------------------------------------------- per frame
@@ -185,11 +206,18 @@ class Odometry:
             self.seed * 1_000_003 + int(frame.index))
         depth_t = torch.from_numpy(depth).to(self.device)
         rgb_t = torch.from_numpy(rgb).to(self.device).float() / 255.0
+        finished, self._unreported = self._unreported + self._recorded(self.maps.collect()), []
 
         # The server changed the map or the decoders since the last frame: fit them to each
         # other before tracking leans on them (tracking against freshly averaged decoders
         # lost an agent of a two-agent run within ten frames of its merge: docs/odometry.md).
-        refit_steps, refit_time = self._refit(generator) if self.fused else (0, 0.0)
+        refit_steps, refit_time = 0, 0.0
+        if self.fused:
+            finished += self._drain_worker()
+            refit_steps, refit_time = self._refit(generator)
+        if count > 0 and len(self.maps.published.point_map) == 0:
+            finished += self._drain_worker()  # nothing to track against before the first call
+        state = self.maps.published
 
         t0 = time.perf_counter()
         current = Frame(int(frame.index), rgb, depth, rgb_t, depth_t)
@@ -198,7 +226,7 @@ class Odometry:
         if count == 0:
             T_world_cam = np.eye(4)
         else:
-            result, event = self._track(current, generator)
+            result, event = self._track(state, current, generator)
             T_world_cam, track_iters, track_loss = result.T_world_cam, result.iters, result.loss
             inliers, residual = result.inlier_ratio, result.residual_m
         track_time = time.perf_counter() - t0
@@ -208,27 +236,30 @@ class Odometry:
         if healthy and (self._last_kf_count is None
                         or count - self._last_kf_count >= self.kf_every):
             kf = self.keyframes.add(frame.index, frame.timestamp, T_world_cam, rgb, depth)
-            self.point_map.set_keyframe_poses(kf.kf_id, T_world_cam, self.agent_id)
             kf_id, self._last_kf_count = kf.kf_id, count
             self._set_reference(kf.kf_id)
-
-        map_time, map_steps, optimise_time = refit_time, refit_steps, refit_time
-        if healthy and (self._last_map_count is None
-                        or count - self._last_map_count >= self.map_every):
-            t1 = time.perf_counter()
-            steps, seconds, T_world_cam = self._map(rgb, depth, rgb_t, depth_t, T_world_cam,
-                                                    kf_id, count, generator)
-            map_steps, optimise_time = map_steps + steps, optimise_time + seconds
-            map_time += time.perf_counter() - t1
-            self._last_map_count = count
-        self._last_frame = current
-        if healthy:
-            self._last_tracked = current
-
+        mapping = healthy and (self._last_map_count is None
+                               or count - self._last_map_count >= self.map_every)
         self._stamps.append(float(frame.timestamp))
         self._indices.append(int(frame.index))
         self._poses.append(np.asarray(T_world_cam, dtype=np.float64))
         self._tracked.append(healthy)
+        if mapping or kf_id is not None:
+            t1 = time.perf_counter()
+            job = self._job(current, T_world_cam, kf_id, mapping, count, generator)
+            if mapping:
+                self._last_map_count = count
+            for outcome in self._recorded(self.maps.submit(job)):  # lock-step: done now
+                outcome.seconds = time.perf_counter() - t1  # with the co-visibility
+                finished.append(outcome)
+        self._last_frame = current
+        if healthy:
+            self._last_tracked = current
+
+        mapped = [o for o in finished if o.steps > 0]
+        map_steps = refit_steps + sum(o.steps for o in mapped)
+        map_time = refit_time + sum(o.seconds for o in mapped)
+        optimise_time = refit_time + sum(o.optimise_s for o in mapped)
         logger.debug("frame %d: track %d it loss %.4f (%.2f s), map %d steps (%.2f s), %d pts",
                      frame.index, track_iters, track_loss, track_time, map_steps, map_time,
                      len(self.point_map))
@@ -241,6 +272,35 @@ class Odometry:
             track_event=event, track_inlier_ratio=float(inliers),
             track_residual_m=float(residual),
         )
+
+    @property
+    def point_map(self) -> NeuralPointMap:
+        """The map as tracking sees it (inside `editing()`: the one mapping works on)."""
+        return self.maps.visible.point_map
+
+    @property
+    def decoders(self) -> Decoders:
+        """The decoders as tracking sees them (inside `editing()`: mapping's)."""
+        return self.maps.visible.decoders
+
+    def editing(self) -> AbstractContextManager[MapState]:
+        """Change the map, decoders, keyframe poses or trajectory from outside (between
+        frames): waits for every handed-over mapping call, makes `point_map` and `decoders`
+        the mapping side's, and publishes them when the block ends."""
+        return self.maps.editing(lambda done: self._unreported.extend(self._recorded(done)))
+
+    def drain(self) -> None:
+        """Wait for every handed-over mapping call (at the end of a stream, before saving)."""
+        self._unreported += self._drain_worker()
+
+    def close(self) -> None:
+        """Finish the handed-over mapping calls and stop the mapping thread (idempotent)."""
+        self.drain()
+        self.maps.close()
+
+    def schedule_stats(self) -> dict[str, object]:
+        """`MapSchedule.stats`: the schedule, mapping calls run, skipped, waits."""
+        return self.maps.stats()
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
         """Stamps [N] float64 and T_world_cam [N, 4, 4] of every frame so far."""
@@ -305,29 +365,14 @@ class Odometry:
             self.keyframes.get(kf_id).T_world_cam, (intr.fx, intr.fy, intr.cx, intr.cy)))
 
     def _guesses(self) -> dict[str, np.ndarray]:
-        """The motion models' initial poses of the next frame, from the last frames whose
-        tracking was not lost (a lost frame's pose would mislead them)."""
-        good = list(itertools.islice(
-            (i for i in range(len(self._poses) - 1, -1, -1) if self._tracked[i]), 2))
-        if not good:
-            return {"zero_motion": self._poses[-1].copy()}
-        previous = self._poses[good[0]]
-        guesses = {"zero_motion": previous.copy()}
-        if len(good) == 2 and good[0] - good[1] == 1:
-            # Repeat the last relative motion once per frame since: T_k = T_{k-1} M, with
-            # M = T_{k-2}^-1 T_{k-1}.
-            motion = np.linalg.inv(self._poses[good[1]]) @ previous
-            guess = previous
-            for _ in range(len(self._poses) - good[0]):
-                guess = guess @ motion
-            guesses["constant_velocity"] = guess
-        return guesses
+        return motion_guesses(self._poses, self._tracked)
 
     def _initial_pose(self) -> np.ndarray:
         guesses = self._guesses()
         return guesses.get(self.init, guesses["zero_motion"])
 
-    def _track(self, current: Frame, generator: torch.Generator) -> tuple[TrackResult, str]:
+    def _track(self, state: MapState, current: Frame,
+               generator: torch.Generator) -> tuple[TrackResult, str]:
         """Track the frame from the configured guess; check and recover it (recovery on)."""
         T_init = self._initial_pose()
         # The recovery draws its pixels from a seed of its own (leaving `generator` to the
@@ -337,7 +382,7 @@ class Odometry:
         if self._reference is not None and self._reference[0] in self.keyframes:
             kf_id, reference = self._reference
             reference.T_world_ref = self.keyframes.get(kf_id).T_world_cam  # corrections
-        result = self.tracker.track(self.point_map, self.decoders, current.rgb_t,
+        result = self.tracker.track(state.point_map, state.decoders, current.rgb_t,
                                     current.depth_t, T_init, generator, reference=reference)
         if self.recovery is None:
             return result, ""
@@ -348,46 +393,68 @@ class Odometry:
             self.recovery.accept(result)
             return result, ""
         outcome = self.recovery.recover(
-            self.tracker, self.point_map, self.decoders, current, result, reason, guesses,
+            self.tracker, state.point_map, state.decoders, current, result, reason, guesses,
             self._last_tracked, guesses["zero_motion"], self.intrinsics, self.keyframes, seed)
         return outcome.result, outcome.event
 
-    def _map(self, rgb: np.ndarray, depth: np.ndarray, rgb_t: torch.Tensor,
-             depth_t: torch.Tensor, T_world_cam: np.ndarray, kf_id: int | None, count: int,
-             generator: torch.Generator) -> tuple[int, float, np.ndarray]:
-        """Add points, pick co-visible keyframes, optimise; returns the optimisation's steps
-        and seconds (the caller times the whole call) and the frame's pose: refined with the
-        map when mapping.pose_lr > 0 and the frame is not a keyframe (a keyframe's pose
-        anchors points and enters the pose table, so it stays as tracked)."""
+    def _job(self, current: Frame, T_world_cam: np.ndarray, kf_id: int | None, optimise: bool,
+             count: int, generator: torch.Generator) -> MapJob:
+        """The mapping call of this frame: register keyframe kf_id (when made here), then,
+        with `optimise`, add points anchored to the latest keyframe and optimise on this
+        frame and its co-visible keyframes. The pose is refined with the map when
+        mapping.pose_lr > 0 and the frame is not a keyframe (a keyframe's pose anchors points
+        and enters the pose table, so it stays as tracked)."""
         anchor = self.keyframes.latest
         assert anchor is not None  # frame 0 is always a keyframe
-        ids = self.mapper.add_points(self.point_map, self.decoders, self.cnn, rgb, depth,
-                                     self.intrinsics, T_world_cam, anchor.kf_id, generator)
-        self.keyframes.add_point_ids(anchor.kf_id, ids)
-        views = self._views(rgb_t, depth_t, T_world_cam, exclude=() if kf_id is None
-                            else (kf_id,))
+        job = MapJob(count, current.index, np.asarray(T_world_cam, np.float64), anchor.kf_id,
+                     kf_id, optimise)
+        if not optimise:
+            return job
         if count == 0:
-            iters, n_pixels = self.iters_first, self.n_pixels_first
+            job.iters, job.n_pixels = self.iters_first, self.n_pixels_first
         else:
-            iters = self.iters_after_fusion if self.fused else self.iters
-            n_pixels = self.n_pixels
+            job.iters = self.iters_after_fusion if self.fused else self.iters
+            job.n_pixels = self.n_pixels
         self.fused = False
-        pose_lr = self.pose_lr if kf_id is None else 0.0
-        result = self.mapper.optimise(self.point_map, self.decoders, views, iters, n_pixels,
-                                      generator, pose_lr=pose_lr)
-        refined = T_world_cam if result.T_world_cam is None else result.T_world_cam
-        return result.steps, result.seconds, refined
+        job.rgb, job.depth = current.rgb, current.depth
+        job.views = self._views(current.rgb_t, current.depth_t, T_world_cam,
+                                exclude=() if kf_id is None else (kf_id,))
+        job.pose_lr = self.pose_lr if kf_id is None else 0.0
+        # Lock-step continues the frame's stream after tracking; the mapping thread gets a
+        # stream of its own (tracking's draws must not depend on when mapping runs).
+        job.generator = generator if not self.maps.concurrent else torch.Generator(
+            device="cpu").manual_seed((self.seed * 1_000_003 + current.index) * 2)
+        return job
+
+    def _run_job(self, job: MapJob, state: MapState) -> MapOutcome:
+        return run_map_job(job, state, self.mapper, self.cnn, self.intrinsics, self.agent_id)
+
+    def _recorded(self, outcomes: list[MapOutcome]) -> list[MapOutcome]:
+        """Record finished mapping calls (the points they anchored, the refined poses)."""
+        for outcome in outcomes:
+            if len(outcome.point_ids) and outcome.anchor_kf in self.keyframes:
+                self.keyframes.add_point_ids(outcome.anchor_kf, outcome.point_ids)
+            if outcome.T_world_cam is not None and outcome.count < len(self._poses):
+                self._poses[outcome.count] = np.asarray(outcome.T_world_cam, np.float64)
+        return outcomes
+
+    def _drain_worker(self) -> list[MapOutcome]:
+        """Wait for the mapping thread (concurrent) and record what it finished."""
+        return self._recorded(self.maps.drain())
 
     def _refit(self, generator: torch.Generator) -> tuple[int, float]:
         """`mapping.iters_after_fusion` steps on the last frame (at its pose, which follows
-        the server's corrections) and its co-visible keyframes; steps and seconds."""
+        the server's corrections) and its co-visible keyframes; steps and seconds. The
+        mapping thread is idle (drained) when this runs."""
         if self._last_frame is None or not self._poses:
             return 0, 0.0  # nothing to fit on (resumed): the next mapping call does it
         self.fused = False
         rgb_t, depth_t = self._last_frame.rgb_t, self._last_frame.depth_t
-        result = self.mapper.optimise(self.point_map, self.decoders,
+        work = self.maps.work
+        result = self.mapper.optimise(work.point_map, work.decoders,
                                       self._views(rgb_t, depth_t, self._poses[-1]),
                                       self.iters_after_fusion, self.n_pixels, generator)
+        self.maps.republish()
         logger.debug("re-fit after a change from the server: %d steps, loss %.4f -> %.4f",
                      result.steps, result.loss_first, result.loss_last)
         return result.steps, result.seconds
@@ -410,16 +477,17 @@ class Odometry:
 
     def state_dict(self) -> dict:
         """Everything needed to render or resume (plain tensors, numbers, strings, lists and
-        dicts: loadable with torch.load(weights_only=True))."""
+        dicts: loadable with torch.load(weights_only=True)); waits for the mapping thread."""
+        self.drain()
         _, poses = self.trajectory()
         return {
             "format_version": FORMAT_VERSION,
             "agent_id": self.agent_id,
             "seed": self.seed,
             "intrinsics": self.intrinsics.to_dict(),
-            "point_map": self.point_map.state_dict(),
+            "point_map": self.maps.work.point_map.state_dict(),
             "decoders": {k: v.detach().cpu().clone() for k, v in
-                         self.decoders.state_dict().items()},
+                         self.maps.work.decoders.state_dict().items()},
             "keyframes": self.keyframes.state_dict(),
             "stamps": torch.tensor(self._stamps, dtype=torch.float64),
             "frame_indices": torch.tensor(self._indices, dtype=torch.int64),
@@ -441,8 +509,11 @@ class Odometry:
         if intrinsics != self.intrinsics:
             raise ValueError(f"odometry state: saved at {intrinsics}, this odometry works at "
                              f"{self.intrinsics}")
-        self.point_map.load_state_dict(state["point_map"], source="odometry state point_map")
-        self.decoders.load_state_dict(state["decoders"])
+        self.drain()
+        self.maps.work.point_map.load_state_dict(state["point_map"],
+                                                 source="odometry state point_map")
+        self.maps.work.decoders.load_state_dict(state["decoders"])
+        self.maps.republish()
         self.keyframes.load_state_dict(state["keyframes"], source="odometry state keyframes")
         self._stamps = [float(s) for s in state["stamps"].tolist()]
         self._indices = [int(i) for i in state["frame_indices"].tolist()]
@@ -471,3 +542,12 @@ class Odometry:
             self._set_reference(latest.kf_id)
         if self.recovery is not None and "recovery" in state:
             self.recovery.load_state_dict(state["recovery"])
+
+
+def _split_threads() -> int:
+    """Torch threads of the mapping thread; the calling (tracking) thread keeps the rest, so
+    the two together use what `run.num_threads` gave the process (at least one each)."""
+    total = torch.get_num_threads()
+    mapping = max(1, total // 2)
+    torch.set_num_threads(max(1, total - mapping))
+    return mapping

@@ -126,8 +126,10 @@ def run_standalone(
         logger.warning("interrupted after %d frames: saving what exists", len(results))
     finally:
         signal.signal(signal.SIGTERM, previous)
+    odometry.drain()  # the mapping calls still running belong to the run
     wall = time.perf_counter() - t0
     write_agent_outputs(odometry, agent_dir, results, wall, interrupted, device)
+    odometry.close()
     return StandaloneResult(agent_dir, start + len(results), len(seq), interrupted, wall, results)
 
 
@@ -142,6 +144,7 @@ def write_agent_outputs(
     """trajectory.tum, map.ply, state.pt and metrics.json of one agent."""
     import torch
 
+    odometry.drain()
     stamps, poses = odometry.trajectory()
     if len(stamps):
         write_tum(agent_dir / "trajectory.tum", stamps, poses)
@@ -187,6 +190,8 @@ def frame_metrics(
         "keyframes": sum(1 for r in results if r.is_keyframe),
         # Frames the recovery found suspect, recovered and lost (empty with recovery off).
         "tracking_events": odometry.tracking_events(),
+        # Concurrent schedule: mapping calls run, mapping frames skipped, waits for keyframes.
+        "mapping_schedule": odometry.schedule_stats(),
         "decoder_parameters": sum(p.numel() for p in odometry.decoders.parameters()),
         "device": device,
         "torch_threads": torch.get_num_threads(),

@@ -100,6 +100,9 @@ class RunConfig(Section):
     """Torch CPU threads: N; auto = usable cores / processes side by side; null = torch's."""
     deterministic: bool = True
     """Ask torch for deterministic algorithms (slower on GPU)."""
+    schedule: Literal["concurrent", "lockstep"] = "concurrent"
+    """Tracking and mapping: concurrent (mapping on its own thread, tracking never waits for
+    it) or lockstep (mapping inline after the frame; with deterministic, repeats bit for bit)."""
 
     @field_validator("device")
     @classmethod

@@ -234,6 +234,8 @@ class MappingConfig(Section):
     """Add points where rendered depth errs by more than this (m); null = no point within radius."""
     pose_lr: NonNegativeFloat = 0.0
     """Adam rate refining a non-keyframe mapping frame's pose with the map (0 = keep tracked)."""
+    max_pending_keyframes: PositiveInt = 2
+    """Concurrent schedule: keyframes waiting for the mapping thread before tracking waits too."""
 
 
 class KeyframesConfig(Section):
