@@ -18,9 +18,9 @@ duration of the run (nothing in the library changes, and nothing costs anything 
 script does not run). The first frame (no tracking, the long first mapping call) is reported
 apart from the per-frame figures of the others. The timers add about a microsecond per call.
 
-Usage: python bench/profile.py [--preset cpu] [--frames 21] [--threads 2]
+Usage: python bench/stage_profile.py [--preset cpu] [--frames 21] [--threads 2]
        [--synthetic SEED] [--data PATH] [--set a.b=v ...] [--json PATH]
-Example: python bench/profile.py --frames 21 --set mapping.iters_first=100 \\
+Example: python bench/stage_profile.py --frames 21 --set mapping.iters_first=100 \\
              --json bench/results/profile-cpu.json
 """
 
@@ -34,10 +34,7 @@ import time
 from collections import defaultdict
 from pathlib import Path
 
-# This file is named like the stdlib's `profile` (which torch imports through cProfile): put
-# its folder after the stdlib on the path instead of before it.
-_HERE = str(Path(__file__).resolve().parent)
-sys.path[:] = [p for p in sys.path if p not in ("", _HERE)] + [_HERE]
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 from benchinfo import bench_header  # noqa: E402
 from odometry_runs import KITCHEN, ensure_scene, scene_specs  # noqa: E402
 
@@ -215,7 +212,7 @@ def main() -> None:
     n = len(frames) - 1
     per_frame = table(clock, n)
 
-    report = bench_header("profile", sys.argv)
+    report = bench_header("stage_profile", sys.argv)
     report.update(preset=args.preset, overrides=args.set, threads=args.threads, data=path,
                   frames=len(frames), resolution=list(intrinsics.shape),
                   track_iters_per_frame=track_steps / n, map_steps_per_frame=map_steps / n,
