@@ -97,14 +97,23 @@ class Decoders(nn.Module):
             features_k[sample, slot], pair_point, offsets[sample, slot], sample, valid.shape[0]
         )
 
+    def point_hidden(self, point_features: torch.Tensor) -> torch.Tensor:
+        """C's first layer on the feature half: [P, F] -> [P, c_hidden] (no bias).
+
+        A caller that decodes several times from the same points with frozen features and
+        decoders (tracking) computes this once and passes it to `forward_pairs`.
+        """
+        return self.c_feature(positional_encoding(point_features, self.pe_feature))
+
     def forward_pairs(
         self,
-        point_features: torch.Tensor,
+        point_features: torch.Tensor | None,
         pair_point: torch.Tensor,
         pair_offset: torch.Tensor,
         pair_sample: torch.Tensor,
         n_samples: int,
         color: bool = True,
+        point_hidden: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Decode from a flat list of (sample, point) pairs.
 
@@ -112,6 +121,8 @@ class Decoders(nn.Module):
         point_features; pair_offset: [V, 3] x_sample - p_point; pair_sample: [V] int64 sample
         of each pair in [0, n_samples). Returns occupancy [n_samples], colour [n_samples, 3].
         With color=False, U is skipped and the colour is all zeros (depth-only tracking).
+        point_hidden: `point_hidden(point_features)` computed beforehand (point_features is
+        then not read and may be None).
         """
         device = pair_offset.device
         n_pairs = int(pair_sample.numel())
@@ -120,12 +131,18 @@ class Decoders(nn.Module):
         if n_pairs == 0:
             return occupancy, torch.zeros(n_samples, 3, device=device, dtype=pair_offset.dtype)
 
-        h_point = self.c_feature(positional_encoding(point_features, self.pe_feature))
-        h = h_point[pair_point] + self.c_offset(positional_encoding(pair_offset, self.pe_offset))
-        h = self.act(h)
+        if point_hidden is None:
+            point_hidden = self.point_hidden(point_features)
+        # The gathered per-point half is added in place (the [V, H] per-pair tensors are the
+        # largest of the pass; a Linear's backward does not read its output; the same sum, so
+        # the same bits). The activations stay out of place: LeakyReLU's backward from its
+        # output (the in-place form) ran at half the speed of the one from its input.
+        act = self.act
+        h = self.c_offset(positional_encoding(pair_offset, self.pe_offset))
+        h = act(h.add_(point_hidden[pair_point]))
         for layer in self.c_mid:
-            h = self.act(layer(h))
-        f_pair = self.act(self.c_out(h))  # [V, c_out]
+            h = act(layer(h))
+        f_pair = act(self.c_out(h))  # [V, c_out]
 
         dist = torch.sqrt((pair_offset * pair_offset).sum(-1) + _DIST_EPS**2)
         w = 1.0 / dist

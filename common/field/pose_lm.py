@@ -204,6 +204,7 @@ class _Problem:
         self.t_far = float(self.t.max())
         self.T_search: np.ndarray | None = None
         self.neighbours: torch.Tensor | None = None
+        self.render_cache: dict = {}  # what depends only on the neighbours (render_samples)
         self.reference = reference if reference is not None and settings.reference_weight > 0 \
             else None
 
@@ -218,10 +219,11 @@ class _Problem:
             x = rays_o.detach()[:, None, :] + self.t[..., None] * rays_d.detach()[:, None, :]
             self.neighbours = self.index.query(x.reshape(-1, 3), self.s.k, self.s.radius)
             self.T_search = T.copy()
+            self.render_cache = {}
         out = render_samples(self.point_map, self.decoders, rays_o, rays_d, self.t, self.s.k,
                              self.s.radius, features=self.features, backend=self.s.backend,
                              chunk=self.s.chunk, neighbours=self.neighbours,
-                             color=self.gray_obs is not None)
+                             color=self.gray_obs is not None, cache=self.render_cache)
         state = {"R": R, "rays_o": rays_o, "rays_d": rays_d, "out": out,
                  "r_depth": out["depth"].detach().double() - self.depth_obs}
         if self.gray_obs is not None:

@@ -84,6 +84,7 @@ def render_samples(
     chunk: int | None = None,
     neighbours: torch.Tensor | None = None,
     color: bool = True,
+    cache: dict | None = None,
 ) -> dict[str, torch.Tensor]:
     """Render R rays at given sample depths t [R, n] (ascending along each ray).
 
@@ -92,6 +93,11 @@ def render_samples(
     `NeuralPointMap.neighbour_index().query`, to skip the search (a tracker that moves the
     rays by less than a fraction of the radius can reuse one search over several steps).
     color: False skips the colour decoder (colour comes back as zeros).
+    cache: with `neighbours`, a dict the caller keeps between calls with the same
+        neighbours, features and decoders (a tracker's steps): the pair lists, the pairs' point
+        positions and, where nothing there needs a gradient, the decoders' per-point hidden
+        layer are computed on the first call and reused; the caller empties it when any of
+        them changes. The result is the same as without it.
     """
     if rays_o.shape != rays_d.shape or rays_o.ndim != 2 or rays_o.shape[1] != 3:
         raise ValueError(f"render: rays_o {tuple(rays_o.shape)} and rays_d "
@@ -113,7 +119,8 @@ def render_samples(
         _render_chunk(xyz, feats, index, decoders, rays_o[i : i + step], rays_d[i : i + step],
                       t[i : i + step], k, radius,
                       None if neighbours is None
-                      else neighbours[i * n_per_ray : (i + step) * n_per_ray], color)
+                      else neighbours[i * n_per_ray : (i + step) * n_per_ray], color,
+                      None if cache is None or neighbours is None else cache.setdefault(i, {}))
         for i in range(0, max(n_rays, 1), step)
     ]
     if len(parts) == 1:
@@ -219,6 +226,7 @@ def _render_chunk(
     radius: float,
     nbr: torch.Tensor | None = None,
     color: bool = True,
+    cache: dict | None = None,
 ) -> dict[str, torch.Tensor]:
     n_rays, n_per_ray = t.shape
     t = t.to(rays_o.device)
@@ -226,18 +234,23 @@ def _render_chunk(
     if nbr is None:
         nbr = index.query(x.detach(), k, radius)
     nbr = nbr.to(x.device)  # [S, k]
-    pair_sample, slot = (nbr >= 0).nonzero(as_tuple=True)
-    pair_global = nbr[pair_sample, slot]
-    # Features enter C's first layer once per distinct point, not once per pair. The distinct
-    # points come from a mask over the map (linear time) rather than torch.unique (a sort).
-    used = torch.zeros(len(xyz), dtype=torch.bool, device=x.device)
-    used[pair_global] = True
-    points = used.nonzero(as_tuple=True)[0]
-    pair_point = (torch.cumsum(used, 0) - 1)[pair_global]
-    offsets = x[pair_sample] - xyz[pair_global].to(x.dtype)
-    occ, rgb = decoders.forward_pairs(
-        features[points], pair_point, offsets, pair_sample, x.shape[0], color
-    )
+    pairs = cache if cache else _sample_pairs(nbr, xyz, x.device)
+    if cache is not None and not cache:
+        cache.update(pairs)
+    # What carries a gradient (trainable features or decoders, movable points) is recomputed
+    # at every call; the rest is kept.
+    hidden, xyz_pair = pairs.get("hidden"), pairs.get("xyz")
+    if hidden is None:
+        hidden = decoders.point_hidden(features[pairs["points"]])
+        if cache is not None and not hidden.requires_grad:
+            cache["hidden"] = hidden
+    if xyz_pair is None:
+        xyz_pair = xyz[pairs["global"]].to(x.dtype)
+        if cache is not None and not xyz_pair.requires_grad:
+            cache["xyz"] = xyz_pair
+    offsets = x[pairs["sample"]] - xyz_pair
+    occ, rgb = decoders.forward_pairs(None, pairs["point"], offsets, pairs["sample"],
+                                      x.shape[0], color, point_hidden=hidden)
     occ = occ.reshape(n_rays, n_per_ray)
     rgb = rgb.reshape(n_rays, n_per_ray, 3)
     # w_i = o_i prod_{j<i} (1 - o_j) along each ray (samples sorted by depth).
@@ -254,6 +267,21 @@ def _render_chunk(
         "weights": weights,
         "n_valid_samples": (nbr[:, 0] >= 0).sum(),
     }
+
+
+def _sample_pairs(nbr: torch.Tensor, xyz: torch.Tensor, device: torch.device
+                  ) -> dict[str, torch.Tensor]:
+    """The (sample, neighbour) pairs of nbr [S, k]: sample [V], global [V] (map rows),
+    point [V] (rows of points) and points [P] (the distinct map rows)."""
+    pair_sample, slot = (nbr >= 0).nonzero(as_tuple=True)
+    pair_global = nbr[pair_sample, slot]
+    # Features enter C's first layer once per distinct point, not once per pair. The distinct
+    # points come from a mask over the map (linear time) rather than torch.unique (a sort).
+    used = torch.zeros(len(xyz), dtype=torch.bool, device=device)
+    used[pair_global] = True
+    return {"sample": pair_sample, "global": pair_global,
+            "point": (torch.cumsum(used, 0) - 1)[pair_global],
+            "points": used.nonzero(as_tuple=True)[0]}
 
 
 def _first_hit(

@@ -220,6 +220,7 @@ class Tracker:
         optimiser = torch.optim.Adam([xi], lr=self.lr)
         decoders.requires_grad_(False)
         cached: tuple[torch.Tensor, torch.Tensor] | None = None  # (xi at search, neighbours)
+        render_cache: dict = {}  # what depends only on the neighbours (render_samples)
         losses: list[float] = []
         best = (math.inf, xi.detach().clone(), 0)
         kept: list[float] = []  # share of the pixels the mask kept, per step
@@ -235,10 +236,11 @@ class Tracker:
                     x = rays_o[:, None, :] + t[..., None] * rays_d[:, None, :]
                     cached = (xi.detach().clone(), index.query(x.detach().reshape(-1, 3),
                                                                self.k, self.radius))
+                    render_cache = {}
                 out = render_samples(point_map, decoders, rays_o, rays_d, t, self.k,
                                      self.radius, features=features, backend=self.backend,
                                      chunk=self.chunk, neighbours=cached[1],
-                                     color=color_obs is not None)
+                                     color=color_obs is not None, cache=render_cache)
                 err = (out["depth"] - depth_obs).abs()
                 mask = outlier_mask(err.detach(), out["var"].detach(), self.err_lo,
                                     self.err_hi, self.var_factor)

@@ -15,6 +15,7 @@ from cpslam.common.field import (
     camera_rays,
     render_image,
     render_rays,
+    render_samples,
 )
 from cpslam.common.geometry_torch import torch_se3_exp
 
@@ -140,6 +141,54 @@ def test_same_seed_same_output() -> None:
         assert torch.equal(outs[0][key], outs[1][key]), key
     other = _small_decoders(seed=4)
     assert not torch.equal(other.c_out.weight, _small_decoders(seed=3).c_out.weight)
+
+
+def _tracking_batch(m: NeuralPointMap, n: int, seed: int) -> tuple[torch.Tensor, ...]:
+    """Pixels u, v [n], samples t [n, s] and their neighbours at the identity pose."""
+    gen = torch.Generator().manual_seed(seed)
+    u, v = _pixels(n, gen)
+    t = SPEC.sampler()(torch.full((n,), PLANE_Z), gen)
+    rays_o, rays_d = camera_rays(INTR, torch.eye(4), u, v)
+    x = (rays_o[:, None, :] + t[..., None] * rays_d[:, None, :]).reshape(-1, 3)
+    return u, v, t, m.neighbour_index().query(x, SPEC.k_neighbors, SPEC.radius)
+
+
+def test_render_cache_gives_the_same_renders_and_pose_gradients() -> None:
+    """A tracker's steps: fixed neighbours and frozen map, rays moved a little per step."""
+    m = _plane_map()
+    dec = _small_decoders().requires_grad_(False)
+    u, v, t, neighbours = _tracking_batch(m, 120, seed=5)
+    features = m.features.detach()
+    cache: dict = {}
+    for step in range(3):
+        xi = torch.tensor([0.002 * step, -0.001 * step, 0.0, 0.0, 0.001 * step, 0.0],
+                          dtype=torch.float64, requires_grad=True)
+        outs, grads = [], []
+        for use_cache in (None, cache):
+            o, d = camera_rays(INTR, torch_se3_exp(xi), u, v)
+            out = render_samples(m, dec, o, d, t, features=features, neighbours=neighbours,
+                                 chunk=50, cache=use_cache, **KR)
+            outs.append(out)
+            grads.append(torch.autograd.grad(out["depth"].sum() + out["color"].sum(), xi)[0])
+        for key in ("depth", "color", "var", "acc", "weights"):
+            assert torch.equal(outs[0][key], outs[1][key]), (step, key)
+        assert torch.equal(grads[0], grads[1]), step
+    # One entry per chunk of 50 rays, each with its pair lists and the per-point hidden layer.
+    assert sorted(cache) == [0, 50, 100]
+    assert all("hidden" in entry and "point" in entry for entry in cache.values())
+
+
+def test_render_cache_keeps_nothing_that_needs_a_gradient() -> None:
+    m = _plane_map()
+    dec = _small_decoders()
+    u, v, t, neighbours = _tracking_batch(m, 60, seed=6)
+    rays_o, rays_d = camera_rays(INTR, torch.eye(4), u, v)
+    cache: dict = {}
+    for _ in range(2):  # a second backward through a kept graph would raise
+        out = render_samples(m, dec, rays_o, rays_d, t, neighbours=neighbours, cache=cache, **KR)
+        out["depth"].sum().backward()
+    assert "hidden" not in cache[0]
+    assert m.features.grad is not None and float(m.features.grad.abs().sum()) > 0
 
 
 def test_feature_cnn_is_seeded() -> None:
