@@ -8,7 +8,8 @@
 # checked between frames), is killed at what is left of the whole budget, and reports the
 # frames it did; the table comes last.
 #
-# Runs, in this order (preset, sequence, frames at most, seconds at most):
+# First the device-placement tests (their `cuda` cases run only where a GPU is); then the
+# runs, in this order (preset, sequence, frames at most, seconds at most):
 #   cpu    synthetic room loop, 320x240      60 frames   40 s   (.gpudata/room-0-loop)
 #   paper  7-Scenes kitchen, 640x480        100 frames  140 s
 #   paper  synthetic room loop, 320x240      60 frames  100 s
@@ -96,6 +97,12 @@ if sys.argv[1].startswith("cuda"):
     print(f"GPU: {torch.cuda.get_device_name(0)}, "
           f"{torch.cuda.get_device_properties(0).total_memory / 2**30:.1f} GiB")
 EOF
+
+# The device tests (tests/integration/test_device_odometry.py has a `cuda` case for this).
+# -P: the checkout's own cpslam/ folder must not shadow the laid-out package.
+echo "== device tests"
+timeout 150 "$PY" -P -m pytest -q -p no:cacheprovider tests/unit/test_device.py \
+  tests/unit/test_device_placement.py tests/integration/test_device_odometry.py 2>&1 | tail -n 15
 
 CORES=$(nproc)
 THREADS=$((CORES < 8 ? CORES : 8))
