@@ -184,11 +184,12 @@ def summarise(runs: list[dict], open3d: dict) -> dict:
             best = min(o3d.values(), key=lambda v: v["ate_se3_cm"])
             entry["ratio_mean_over_best_open3d"] = round(entry["mean"] / best["ate_se3_cm"], 3)
             entry["ratio_worst_over_best_open3d"] = round(entry["worst"] / best["ate_se3_cm"], 3)
-            pieces = [r["ate_se3_pieces_cm"] for r in ok]
-            best_pieces = min(v["ate_se3_pieces_cm"] for v in o3d.values())
-            entry["pieces_mean"] = round(float(np.mean(pieces)), 3)
-            entry["ratio_pieces_mean_over_best_open3d"] = round(
-                entry["pieces_mean"] / best_pieces, 3)
+            pieces = [r["ate_se3_pieces_cm"] for r in ok if "ate_se3_pieces_cm" in r]
+            best_pieces = min(v.get("ate_se3_pieces_cm", np.inf) for v in o3d.values())
+            if pieces and np.isfinite(best_pieces):
+                entry["pieces_mean"] = round(float(np.mean(pieces)), 3)
+                entry["ratio_pieces_mean_over_best_open3d"] = round(
+                    entry["pieces_mean"] / best_pieces, 3)
         out["per_sequence"][name] = entry
     synth = [r for r in runs if r.get("kind") not in (None, "real") and _measured(r)]
     if synth:
