@@ -84,5 +84,6 @@ def test_odometry_runs_and_resumes_on_its_device(device: str) -> None:
     # sums differently from run to run even in deterministic mode (cuBLAS workspaces).
     np.testing.assert_allclose(poses_r, poses, atol=1e-9 if device == "cpu" else 1e-5)
     gt = np.stack([f.gt_pose for f in frames])
-    # A sanity bound, not an accuracy figure: 8 frames, 7 cm of motion in all.
+    # A sanity bound, not an accuracy figure (8 frames, 7 cm of motion in all): over seeds
+    # 0-3 with 1 and 2 threads the largest position error was 0.20-0.23 mm on the CPU.
     assert np.abs(poses[:, :3, 3] - gt[:, :3, 3]).max() < 0.05
