@@ -45,7 +45,7 @@ class NetVLAD(nn.Module):
             conv_weight = 2.0 * alpha * centroids
             conv_bias = -alpha * (centroids**2).sum(dim=1)
         elif conv_bias is None:
-            conv_bias = torch.zeros(centroids.shape[0])
+            conv_bias = torch.zeros(centroids.shape[0], device=centroids.device)
         conv_weight = conv_weight.detach().float().reshape(centroids.shape)
         self.register_buffer("centroids", centroids)
         self.register_buffer("conv_weight", conv_weight)
@@ -94,10 +94,11 @@ def kmeans(x: torch.Tensor, k: int, seed: int = 0, iters: int = 30) -> torch.Ten
         raise ValueError(f"kmeans: need at least k={k} points [N, C], got {tuple(x.shape)}")
     x = x.double()
     gen = torch.Generator().manual_seed(seed)
-    centres = [x[torch.randint(x.shape[0], (1,), generator=gen)].squeeze(0)]
+    # The draws happen on the CPU generator's device: the same centres on CPU and CUDA.
+    centres = [x[torch.randint(x.shape[0], (1,), generator=gen, device=gen.device)].squeeze(0)]
     d2 = ((x - centres[0]) ** 2).sum(dim=1)
     for _ in range(1, k):
-        pick = torch.multinomial(d2 / d2.sum(), 1, generator=gen)
+        pick = torch.multinomial((d2 / d2.sum()).cpu(), 1, generator=gen).to(x.device)
         centres.append(x[pick].squeeze(0))
         d2 = torch.minimum(d2, ((x - centres[-1]) ** 2).sum(dim=1))
     c = torch.stack(centres)

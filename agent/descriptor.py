@@ -372,6 +372,6 @@ def _count_sketch(d_in: int, d_out: int, seed: int) -> tuple[torch.Tensor, torch
     its sign to output bucket[i]. It preserves inner products in expectation, like a dense
     random projection, at O(d_in) memory (a dense 40960 x 4096 matrix would be 670 MB)."""
     gen = torch.Generator().manual_seed(seed)
-    bucket = torch.randint(d_out, (d_in,), generator=gen)
-    sign = torch.randint(0, 2, (d_in,), generator=gen).float() * 2.0 - 1.0
+    bucket = torch.randint(d_out, (d_in,), generator=gen, device=gen.device)
+    sign = torch.randint(0, 2, (d_in,), generator=gen, device=gen.device).float() * 2.0 - 1.0
     return bucket, sign

@@ -242,14 +242,14 @@ class KeyframeStore:
                 kf_id=int(item["kf_id"]),
                 frame_index=int(item["frame_index"]),
                 timestamp=float(item["timestamp"]),
-                T_world_cam=item["T_world_cam"].numpy().astype(np.float64),
-                rgb_small=item["rgb_small"].numpy().astype(np.uint8),
-                depth_small=item["depth_small"].numpy().astype(np.float32),
-                point_ids=item["point_ids"].numpy().astype(np.int64),
-                xyz_cam=item["xyz_cam"].numpy().astype(np.float32),
-                rgb_png=item["rgb_png"].numpy().astype(np.uint8) if "rgb_png" in item
+                T_world_cam=item["T_world_cam"].cpu().numpy().astype(np.float64),
+                rgb_small=item["rgb_small"].cpu().numpy().astype(np.uint8),
+                depth_small=item["depth_small"].cpu().numpy().astype(np.float32),
+                point_ids=item["point_ids"].cpu().numpy().astype(np.int64),
+                xyz_cam=item["xyz_cam"].cpu().numpy().astype(np.float32),
+                rgb_png=item["rgb_png"].cpu().numpy().astype(np.uint8) if "rgb_png" in item
                 else np.zeros(0, np.uint8),
-                depth_png=item["depth_png"].numpy().astype(np.uint8) if "depth_png" in item
+                depth_png=item["depth_png"].cpu().numpy().astype(np.uint8) if "depth_png" in item
                 else np.zeros(0, np.uint8),
             )
             small = self.intrinsics_small.shape

@@ -517,7 +517,7 @@ class Odometry:
         self.keyframes.load_state_dict(state["keyframes"], source="odometry state keyframes")
         self._stamps = [float(s) for s in state["stamps"].tolist()]
         self._indices = [int(i) for i in state["frame_indices"].tolist()]
-        self._poses = [p.numpy().astype(np.float64) for p in state["poses"]]
+        self._poses = [p.cpu().numpy().astype(np.float64) for p in state["poses"]]
         tracked = state.get("tracked")  # absent in states written before the recovery
         self._tracked = [True] * len(self._poses) if tracked is None else \
             [bool(b) for b in tracked.tolist()]

@@ -23,6 +23,7 @@ keyframe. Every event is logged and counted.
 
 from __future__ import annotations
 
+import importlib.util
 import logging
 from collections import Counter, deque
 from dataclasses import dataclass
@@ -239,7 +240,10 @@ def rgbd_odometry(previous: Frame, frame: Frame, intrinsics: Intrinsics) -> np.n
 def _keyframe_guesses(frame: Frame, keyframes: KeyframeStore, intrinsics: Intrinsics,
                       latest: int = 3) -> dict[str, np.ndarray]:
     """Poses of the frame from registering it against the latest keyframes' full-size images
-    (those that verify)."""
+    (those that verify); none without open3d, which the registration needs (an optional
+    guess, as Open3D's odometry in `rgbd_odometry`)."""
+    if importlib.util.find_spec("open3d") is None:
+        return {}
     from cpslam.common.registration import register_rgbd
 
     guesses = {}

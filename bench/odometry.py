@@ -7,10 +7,14 @@ Runs the agent's front end (`Odometry`: tracking, mapping, keyframes; no loop cl
   room loops and apartment walks in turn, every other pair with Kinect-like depth noise
   (300 frames at 320x240, generated once under runs/bench-data/); origin- and se3-aligned
   ATE, next to Open3D's frame-to-frame RGB-D odometry on the same frames;
-- real frames: ../shared/data/7scenes-kitchen-0-299 (when present) at the preset's
-  camera.downscale; se3 ATE and the ATE over the pieces between the ground truth's one-frame
-  jumps (it jumps 36 mm between frames 121 and 122, a step the camera did not make), next to
-  Open3D at that resolution and at 640x480, with the ratio to the better Open3D.
+- real frames: ../shared/data/7scenes-kitchen-0-299 (or `--real PATH`; when present) at the
+  preset's camera.downscale; se3 ATE and the ATE over the pieces between the ground truth's
+  one-frame jumps (it jumps 36 mm between frames 121 and 122, a step the camera did not make),
+  next to Open3D at that resolution and at 640x480, with the ratio to the better Open3D.
+
+`--synth DIR` takes one synthetic sequence rendered beforehand (`cpslam.tools.synth`, which
+renders with Open3D) instead of `--scenes`. Open3D's comparison is left out when open3d is not
+installed (the JSON says so).
 
 Every sequence runs once per `--threads` count (torch threads), `--capability` (`default`, or
 `avx2`: ATEN_CPU_CAPABILITY=avx2 forces torch's AVX2 kernels on an AVX-512 machine) and
@@ -21,11 +25,15 @@ lost: `cpslam.agent.recovery`) are counted per run.
 
 Timings are wall-clock on this machine (runs side by side share it; on CUDA synchronised per
 frame). The paper's figures on an RTX 3090 (tracking 0.30 s per frame, mapping 10.1 s per
-mapping step) are printed beside ours for the `paper` preset on a GPU (`--device cuda`).
+mapping step) are printed beside ours for the `paper` preset on a GPU (`--device cuda`), with
+the peak GPU memory. `--max-seconds S` stops each run after the frame that passes S seconds
+(the frames done are reported; bench/gpu_check.sh sizes its runs so).
 
 Usage: python bench/odometry.py [--preset cpu] [--scenes 8] [--scene-base 0] [--threads 1 2]
        [--capability default avx2] [--seeds 0] [--frames 300] [--only synth|real]
-       [--set a.b=v ...] [--jobs N] [--device cpu] [--json PATH]
+       [--set a.b=v ...] [--jobs N] [--device cpu] [--real PATH] [--synth DIR]
+       [--max-seconds S]
+       [--json PATH]
 """
 
 from __future__ import annotations
@@ -46,6 +54,7 @@ from odometry_runs import (  # noqa: E402
     KITCHEN,
     PAPER,
     ensure_scene,
+    open3d_available,
     open3d_odometry,
     run_job,
     scene_specs,
@@ -70,6 +79,13 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=0,
                         help="runs at once (0: the cores divided by the runs' threads)")
     parser.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
+    parser.add_argument("--real", type=Path, default=KITCHEN,
+                        help="7-Scenes frames folder for the real sequence")
+    parser.add_argument("--synth", type=Path, default=None,
+                        help="a rendered synthetic sequence (its agent_0 folder's parent) "
+                             "instead of --scenes")
+    parser.add_argument("--max-seconds", type=float, default=0.0,
+                        help="stop each run after the frame that passes this (0: no limit)")
     parser.add_argument("--json", type=Path, default=None, help="also write the JSON here")
     parser.add_argument("--job", default=None, help=argparse.SUPPRESS)  # one run (internal)
     args = parser.parse_args()
@@ -78,24 +94,35 @@ def main() -> None:
         return
     report = bench_header("odometry", sys.argv)
     report.update(preset=args.preset, overrides=args.set, frames=args.frames,
-                  device=args.device, paper_rtx3090=PAPER)
+                  device=args.device, max_seconds=args.max_seconds or None,
+                  paper_rtx3090=PAPER)
     sequences: list[dict] = []
-    if args.only in (None, "synth"):
+    if args.only in (None, "synth") and args.synth is not None:
+        if not (args.synth / "agent_0").is_dir():
+            parser.error(f"--synth {args.synth}: no agent_0 folder (render one with "
+                         "cpslam dataset synth)")
+        sequences.append({"name": args.synth.name, "kind": "synthetic",
+                          "path": str((args.synth / "agent_0").resolve())})
+    elif args.only in (None, "synth"):
         for spec in scene_specs(args.scenes, args.scene_base):
             spec["path"] = str(ensure_scene(spec, args.frames))
             sequences.append(spec)
     if args.only in (None, "real"):
-        if KITCHEN.is_dir():
-            sequences.append({"name": "7scenes-kitchen", "kind": "real", "path": str(KITCHEN)})
+        if args.real.is_dir():
+            sequences.append({"name": "7scenes-kitchen", "kind": "real",
+                              "path": str(args.real.resolve())})
         else:
-            report["real_skipped"] = f"no data at {KITCHEN}"
+            report["real_skipped"] = f"no data at {args.real}"
     jobs = [{"sequence": seq, "preset": args.preset, "overrides": args.set,
              "frames": args.frames, "device": args.device, "threads": threads,
-             "capability": cap, "seed": seed}
+             "capability": cap, "seed": seed, "max_seconds": args.max_seconds or None}
             for threads in args.threads for cap in args.capability for seed in args.seeds
             for seq in sequences]
     report["runs"] = _run_all(jobs, args.jobs)
-    report["open3d"] = {seq["name"]: open3d_odometry(seq, args.frames) for seq in sequences}
+    if open3d_available():
+        report["open3d"] = {seq["name"]: open3d_odometry(seq, args.frames) for seq in sequences}
+    else:
+        report["open3d"], report["open3d_skipped"] = {}, "open3d is not installed"
     report["summary"] = summarise(report["runs"], report["open3d"])
     print_tables(report)
     text = json.dumps(report, indent=2)
@@ -140,7 +167,7 @@ def summarise(runs: list[dict], open3d: dict) -> dict:
     lost runs and recovery events; for the real frames the ratio to the better Open3D."""
     out: dict = {"per_sequence": {}}
     for name in dict.fromkeys(r["sequence"] for r in runs):
-        ok = [r for r in runs if r["sequence"] == name and "error" not in r]
+        ok = [r for r in runs if r["sequence"] == name and _measured(r)]
         key = "ate_origin_cm" if ok and ok[0]["kind"] != "real" else "ate_se3_cm"
         if not ok:
             out["per_sequence"][name] = {"errors": len([r for r in runs
@@ -157,13 +184,14 @@ def summarise(runs: list[dict], open3d: dict) -> dict:
             best = min(o3d.values(), key=lambda v: v["ate_se3_cm"])
             entry["ratio_mean_over_best_open3d"] = round(entry["mean"] / best["ate_se3_cm"], 3)
             entry["ratio_worst_over_best_open3d"] = round(entry["worst"] / best["ate_se3_cm"], 3)
-            pieces = [r["ate_se3_pieces_cm"] for r in ok]
-            best_pieces = min(v["ate_se3_pieces_cm"] for v in o3d.values())
-            entry["pieces_mean"] = round(float(np.mean(pieces)), 3)
-            entry["ratio_pieces_mean_over_best_open3d"] = round(
-                entry["pieces_mean"] / best_pieces, 3)
+            pieces = [r["ate_se3_pieces_cm"] for r in ok if "ate_se3_pieces_cm" in r]
+            best_pieces = min(v.get("ate_se3_pieces_cm", np.inf) for v in o3d.values())
+            if pieces and np.isfinite(best_pieces):
+                entry["pieces_mean"] = round(float(np.mean(pieces)), 3)
+                entry["ratio_pieces_mean_over_best_open3d"] = round(
+                    entry["pieces_mean"] / best_pieces, 3)
         out["per_sequence"][name] = entry
-    synth = [r for r in runs if r.get("kind") not in (None, "real") and "error" not in r]
+    synth = [r for r in runs if r.get("kind") not in (None, "real") and _measured(r)]
     if synth:
         values = [r["ate_origin_cm"] for r in synth]
         out["synthetic"] = {"runs": len(synth), "mean_origin_cm": round(float(np.mean(values)), 3),
@@ -175,6 +203,11 @@ def summarise(runs: list[dict], open3d: dict) -> dict:
     return out
 
 
+def _measured(run: dict) -> bool:
+    """Whether a run has accuracy figures (not failed, not stopped before it could align)."""
+    return "error" not in run and "accuracy_error" not in run
+
+
 def _sum_events(runs: list[dict]) -> dict:
     keys = ("suspect", "recovered", "lost")
     return {k: int(sum(r.get("events", {}).get(k, 0) for r in runs)) for k in keys}
@@ -184,20 +217,21 @@ def print_tables(report: dict) -> None:
     """Per run, per sequence and overall."""
     rows = [("sequence", "threads", "cpu", "seed", "ATE origin cm", "ATE se3 cm",
              "pieces cm", "max err cm", "RPE1 mm/deg", "events s/r/l", "s/frame",
-             "track s", "map s/call")]
+             "track s", "map s/call", "frames", "GPU MiB")]
     for r in report["runs"]:
         if "error" in r:
             rows.append((r["sequence"], str(r["threads"]), r["capability"], str(r["seed"]),
-                         "error", "", "", "", "", "", "", "", ""))
+                         "error", "", "", "", "", "", "", "", "", "", ""))
             continue
         ev = r.get("events", {})
         rows.append((r["sequence"], str(r["threads"]), r["capability"], str(r["seed"]),
-                     str(r.get("ate_origin_cm", "-")), str(r["ate_se3_cm"]),
-                     str(r.get("ate_se3_pieces_cm", "-")), str(r["max_error_cm"]),
+                     str(r.get("ate_origin_cm", "-")), str(r.get("ate_se3_cm", "-")),
+                     str(r.get("ate_se3_pieces_cm", "-")), str(r.get("max_error_cm", "-")),
                      f"{r.get('rpe1_mm', '-')}/{r.get('rpe1_deg', '-')}",
                      f"{ev.get('suspect', 0)}/{ev.get('recovered', 0)}/{ev.get('lost', 0)}",
                      str(r["s_per_frame"]), str(r["tracking_s_per_frame"]),
-                     str(r["mapping_s_per_call"])))
+                     str(r["mapping_s_per_call"]), str(r.get("frames", "-")),
+                     str(r.get("peak_gpu_memory_mb") or "-")))
     _print_rows(rows)
     print()
     rows = [("sequence", "metric", "runs", "mean", "worst", "lost runs", "Open3D",

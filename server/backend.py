@@ -388,7 +388,7 @@ class Backend:
         self.groups.load_state_dict(state["groups"])
         self.sharing.foreign.load_state_dict(state["foreign"])
         self.pipeline.load_state_dict(state)
-        self.corrected = {(a, int(k)): T.numpy().copy() for a, k, T in state["corrected"]}
+        self.corrected = {(a, int(k)): T.cpu().numpy().copy() for a, k, T in state["corrected"]}
         self.federator.rounds = {}
         self.federator.rounds_closed = list(state["rounds_closed"])
         self.merges = list(state["merges"])

@@ -63,8 +63,8 @@ def select_foreign(receiver: MemberMap, others: Sequence[MemberMap], cell_size: 
                    ) -> dict[str, np.ndarray]:
     """Which points of the other members the receiver needs: those in grid cells its own
     points do not occupy (one per cell). Returns source agent -> bool mask over its points."""
-    own = receiver.point_map.xyz_world().double().numpy()
-    xyz = [m.point_map.xyz_world().double().numpy() for m in others]
+    own = receiver.point_map.xyz_world().double().cpu().numpy()
+    xyz = [m.point_map.xyz_world().double().cpu().numpy() for m in others]
     keep = grid_winners(np.concatenate([own, *xyz]) if xyz else own, cell_size,
                         n_fixed=len(own))
     out, start = {}, len(own)
@@ -89,7 +89,7 @@ class ForeignTracker:
         out = []
         for m in others:
             pm = m.point_map
-            ids = pm.point_id.numpy()
+            ids = pm.point_id.cpu().numpy()
             version = versions[m.agent_id]
             key = (receiver.agent_id, m.agent_id)
             before = self.sent.get(key, {})
@@ -101,16 +101,16 @@ class ForeignTracker:
             gone = sorted(set(before) - set(ids[need].tolist()))
             self.sent[key] = {int(i): int(v) for i, v in zip(ids[need], version[need],
                                                              strict=True)}
-            kf_ids = pm.kf_keys[:, 1].numpy()
+            kf_ids = pm.kf_keys[:, 1].cpu().numpy()
             out.append(ForeignPoints(
                 source_agent_id=m.agent_id,
                 kf_ids=kf_ids.astype(np.int32),
-                T_group_kf=pm.kf_poses.numpy(),
+                T_group_kf=pm.kf_poses.cpu().numpy(),
                 point_ids=ids[send],
-                anchor_kf_ids=pm.anchor_kf.numpy()[send].astype(np.int32),
-                xyz_local=pm.xyz_local.numpy()[send],
-                features=pm.features.detach().numpy()[send].astype(np.float16),
-                colors=pm.color.numpy()[send],
+                anchor_kf_ids=pm.anchor_kf.cpu().numpy()[send].astype(np.int32),
+                xyz_local=pm.xyz_local.cpu().numpy()[send],
+                features=pm.features.detach().cpu().numpy()[send].astype(np.float16),
+                colors=pm.color.cpu().numpy()[send],
                 removed_ids=np.asarray(gone, np.int64),
             ))
         return out
@@ -171,7 +171,8 @@ def finetune_decoders(
     decoders.train()
     losses = []
     for _ in range(iters):
-        pick = torch.randint(0, o.shape[0], (min(n_pixels, o.shape[0]),), generator=gen)
+        pick = torch.randint(0, o.shape[0], (min(n_pixels, o.shape[0]),), generator=gen,
+                             device=gen.device)
         out = render_rays(point_map, decoders, o[pick], d[pick], depth[pick], sampler,
                           generator=gen, k=spec.k_neighbors, radius=spec.radius,
                           backend=spec.neighbour_backend)

@@ -66,14 +66,14 @@ class Group:
 
     @classmethod
     def from_state_dict(cls, state: dict) -> Group:
-        poses = state["T_group_agent"].numpy()
+        poses = state["T_group_agent"].cpu().numpy()
         return cls(
             group_id=state["group_id"], anchor=state["anchor"],
             T_group_agent={a: poses[i].copy() for i, a in enumerate(state["members"])},
             agent_epoch={str(a): int(e) for a, e in state["agent_epoch"].items()},
             epoch=int(state["epoch"]),
             decoder=None if state["decoder"] is None else {
-                k: v.numpy().copy() for k, v in state["decoder"].items()},
+                k: v.cpu().numpy().copy() for k, v in state["decoder"].items()},
             decoder_samples=int(state["decoder_samples"]), round=int(state["round"]),
         )
 

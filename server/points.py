@@ -142,12 +142,12 @@ class PointTable:
     @classmethod
     def from_state_dict(cls, state: dict) -> PointTable:
         out = cls()
-        out.ids = state["ids"].numpy().astype(np.int64)
-        out.anchor = state["anchor"].numpy().astype(np.int32)
-        out.xyz = state["xyz"].numpy().astype(np.float32)
-        out.features = state["features"].numpy().astype(np.float16)
-        out.colors = state["colors"].numpy().astype(np.uint8)
-        out.seq = state["seq"].numpy().astype(np.int64)
+        out.ids = state["ids"].cpu().numpy().astype(np.int64)
+        out.anchor = state["anchor"].cpu().numpy().astype(np.int32)
+        out.xyz = state["xyz"].cpu().numpy().astype(np.float32)
+        out.features = state["features"].cpu().numpy().astype(np.float16)
+        out.colors = state["colors"].cpu().numpy().astype(np.uint8)
+        out.seq = state["seq"].cpu().numpy().astype(np.int64)
         out.tombstones = {int(i): int(s) for i, s in state["tombstones"].tolist()}
         out.check()
         return out

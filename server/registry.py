@@ -372,7 +372,7 @@ def _t(a: np.ndarray) -> torch.Tensor:
 
 
 def _n(t: torch.Tensor) -> np.ndarray:
-    return t.numpy().copy()
+    return t.cpu().numpy().copy()
 
 
 def _frames_state(frames: dict[int, tuple[int, np.ndarray, float]]) -> dict:
@@ -387,7 +387,7 @@ def _frames_state(frames: dict[int, tuple[int, np.ndarray, float]]) -> dict:
 
 
 def _frames_load(state: dict) -> dict[int, tuple[int, np.ndarray, float]]:
-    T = state["T_kf_frame"].numpy()
+    T = state["T_kf_frame"].cpu().numpy()
     return {
         int(f): (int(k), T[i].copy(), float(s))
         for i, (f, k, s) in enumerate(zip(state["index"].tolist(), state["kf"].tolist(),

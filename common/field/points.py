@@ -428,9 +428,10 @@ def _point_keys(point_map: NeuralPointMap) -> torch.Tensor:
 def _check_rigid(T: torch.Tensor, what: str, tol: float = 1e-4) -> None:
     """Raise if any of T [K, 4, 4] is not a rigid transform."""
     R = T[:, :3, :3]
-    eye = torch.eye(3, dtype=T.dtype)
+    eye = torch.eye(3, dtype=T.dtype, device=T.device)
     ortho = (R.transpose(1, 2) @ R - eye).abs().amax(dim=(1, 2))
-    bottom = (T[:, 3] - torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=T.dtype)).abs().amax(dim=1)
+    last_row = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=T.dtype, device=T.device)
+    bottom = (T[:, 3] - last_row).abs().amax(dim=1)
     finite = torch.isfinite(T).flatten(1).all(dim=1)
     bad = ~finite | (ortho > tol) | (torch.linalg.det(R) < 0) | (bottom > tol)
     if bool(bad.any()):

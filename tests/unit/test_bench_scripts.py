@@ -105,3 +105,44 @@ def test_collab_table_reads_a_report() -> None:
                "false_loop_test": {"false_flagged": 1, "false_loops": 1}}
     text = render._collab({"preset": "cpu", "sets": [], "real_split": section})
     assert "| real split | 2.00 / 4.00 (0.50) | 1 / 2 | 1.0 / 2.0 / 3.0 |" in text
+
+
+def test_odometry_accuracy_over_the_frames_done() -> None:
+    """A run stopped by its time budget is scored against as many ground-truth poses."""
+    runs = _bench_module("odometry_runs")
+    stamps = np.arange(8, dtype=np.float64)
+    poses = np.repeat(np.eye(4)[None], 8, axis=0)
+    poses[:, 0, 3] = 0.01 * stamps
+
+    class Seq:
+        timestamps = stamps
+
+        @staticmethod
+        def gt_poses():
+            return poses
+
+    est = poses[:5].copy()
+    est[4, 0, 3] += 0.02  # the last frame done is 2 cm off
+    out = runs.accuracy(Seq(), stamps[:5], est, real=False, frames=5)
+    assert out["max_error_cm"] == pytest.approx(2.0)
+    assert "rpe10_mm" not in out and out["rpe1_mm"] > 0
+
+
+def test_gpu_report_rows_runs_failures_and_the_paper() -> None:
+    report = _bench_module("gpu_report")
+    run = {"sequence": "7scenes-kitchen", "kind": "real", "frames": 40, "frames_asked": 100,
+           "resolution": "640x480", "tracking_s_per_frame": 0.2, "mapping_s_per_call": 4.0,
+           "mapping_s_per_iter": 0.02, "first_mapping_s": 60.0, "s_per_frame": 2.0,
+           "s_per_frame_after_first": 0.6, "peak_gpu_memory_mb": 2048.0,
+           "peak_gpu_reserved_mb": 3072.0, "ate_se3_cm": 1.5, "ate_origin_cm": 9.9}
+    short = {"sequence": "room-0-loop", "kind": "synthetic", "frames": 3,
+             "first_mapping_s_per_iter": 0.03, "accuracy_error": "too few poses"}
+    rows = report.rows([{"preset": "paper", "runs": [run, short]},
+                        {"preset": "cpu", "only": "real", "failed": "killed at the hard limit"},
+                        {"preset": "cpu", "runs": [{"sequence": "x", "error": "a\nboom"}]}])
+    assert rows[0]["frames"] == "40/100" and rows[0]["ATE cm"] == 1.5  # se3 on real frames
+    assert rows[0]["GPU alloc GiB"] == 2.0 and rows[0]["GPU reserved GiB"] == 3.0
+    assert rows[1]["map s/iter"] == 0.03 and rows[1]["status"] == "too few poses"
+    assert rows[2]["status"] == "killed at the hard limit"
+    assert rows[3]["status"] == "error: boom"
+    assert report.paper_row()["track s/f"] == 0.30
