@@ -60,7 +60,10 @@ def run_job(job: dict) -> dict:
     seq = open_sequence(seq_info["path"], frames=slice(0, job["frames"]))
     real = seq_info["kind"] == "real"
     factor = cfg.camera.downscale if real else 1.0  # synthetic scenes are rendered at 320x240
-    out = run_odometry(cfg, seq, factor, device, real)
+    if job.get("loops", "off") == "on":
+        out = run_with_loops(cfg, seq, factor, device, real)
+    else:
+        out = run_odometry(cfg, seq, factor, device, real)
     out.update(torch_threads=threads, cpu_capability=os.environ.get("ATEN_CPU_CAPABILITY",
                                                                     "default"),
                peak_gpu_memory_mb=round(torch.cuda.max_memory_allocated(device) / 2**20, 1)
@@ -107,6 +110,43 @@ def run_odometry(cfg, seq, factor: float, device: str, real: bool) -> dict:
         "first_mapping_s": round(first_map, 2),
         "points": len(odometry.point_map),
         "keyframes": len(odometry.keyframes),
+    })
+    return out
+
+
+def run_with_loops(cfg, seq, factor: float, device: str, real: bool) -> dict:
+    """The standalone run with loop closure (`cpslam-agent --standalone`: `run_collab` with
+    this one sequence, in a scratch folder): accuracy of the final pose-graph trajectory,
+    the loops, the same timings as `run_odometry` (per frame, the back end's work included)."""
+    import tempfile
+
+    from cpslam.run import run_collab
+
+    cfg = cfg.model_copy(update={"camera": cfg.camera.model_copy(update={"downscale": factor})})
+    with tempfile.TemporaryDirectory(prefix="bench-loops-") as tmp:
+        result = run_collab(cfg, [seq], Path(tmp), device, show_progress=False)
+    node, final = result.nodes["0"], result.final.agents[0]
+    frames = node.results
+    mapped = [r for r in frames[1:] if r.map_steps]
+    loops = result.final.metrics.get("loops", {})
+    out = {"frames": len(seq), "resolution": f"{node.intrinsics.width}x{node.intrinsics.height}"}
+    out.update(accuracy(seq, final.stamps, final.T_group_cam, real))
+    out.update({
+        "loops_found": int(loops.get("found", 0)),
+        "loops_accepted": int(loops.get("accepted", 0)),
+        "events": node.odometry.tracking_events(),
+        "s_per_frame": round(result.wall_s / len(seq), 3),
+        "s_per_frame_after_first": round((result.wall_s - frames[0].map_time_s)
+                                         / max(len(seq) - 1, 1), 3),
+        "tracking_s_per_frame": (round(float(np.mean([r.track_time_s for r in frames[1:]])), 3)
+                                 if len(frames) > 1 else None),
+        "mapping_s_per_call": (round(float(np.mean([r.map_time_s for r in mapped])), 3)
+                               if mapped else None),
+        "mapping_s_per_iter": (round(float(np.mean([r.map_optimise_time_s / r.map_steps
+                                                     for r in mapped])), 4) if mapped else None),
+        "first_mapping_s": round(frames[0].map_time_s, 2),
+        "points": len(node.odometry.point_map),
+        "keyframes": len(node.odometry.keyframes),
     })
     return out
 
