@@ -89,8 +89,9 @@ def agent(
     evaluation.json when the sequence has ground truth). --standalone --no-loops runs the
     odometry alone: trajectory.tum is the odometry, and --resume continues such a run.
 
-    Ctrl-C or SIGTERM stops the run and saves what exists (exit 130); with loop closure after
-    the current frame, with the last pose graph (again to exit at once).
+    Ctrl-C or SIGTERM stops the run and saves what exists (exit 130); with loop closure the
+    run stops after the current frame and still runs the last pose graph (a second signal
+    exits at once).
     Torch uses every core this process may use (run.num_threads: auto); beside other busy
     processes on the same cores, give it fewer (--set run.num_threads=1).
 
