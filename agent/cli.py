@@ -30,7 +30,13 @@ def agent(
     ctx: typer.Context,
     seq: Annotated[Path, typer.Option("--seq", help="Sequence folder (any supported format).")],
     standalone: Annotated[
-        bool, typer.Option("--standalone", help="Run without a server (odometry and mapping only).")
+        bool, typer.Option("--standalone", help="Run without a separate server: odometry, "
+                           "mapping and loop closure by an in-process back end (as `cpslam "
+                           "run` with one --seq).")
+    ] = False,
+    no_loops: Annotated[
+        bool, typer.Option("--no-loops", help="With --standalone: odometry and mapping only, "
+                           "no back end (no loop closure); needed for --resume.")
     ] = False,
     agent_id: Annotated[
         str, typer.Option("--agent-id", help="Agent id: 1-64 letters, digits, '_' or '-'.")
@@ -58,7 +64,8 @@ def agent(
         "run.out/run.name, timestamped); RUN/agent_<id>/ follows the overwrite rule.")] = None,
     overwrite: OverwriteOpt = False,
     resume: Annotated[
-        Path | None, typer.Option("--resume", help="state.pt of an earlier run to continue from.")
+        Path | None, typer.Option("--resume", help="state.pt of an earlier run to continue from "
+                                  "(with --standalone --no-loops).")
     ] = None,
     no_progress: Annotated[bool, typer.Option("--no-progress", help="No progress bar.")] = False,
 ) -> None:
@@ -70,9 +77,21 @@ def agent(
     sent per key expression when networked). The effective configuration goes to
     RUN/config.yaml with --standalone, and to RUN/agent_<id>/config.yaml (next to agent.log)
     when networked, where agents and the server may share RUN; an existing RUN/agent_<id>/ is
-    replaced only with --overwrite. Ctrl-C stops the run and saves what exists. Networked:
-    waits for the server, resends what was not acknowledged after a server restart, exits 0
-    once everything is acknowledged (3: no server, 4: unacknowledged).
+    replaced only with --overwrite. Networked: waits for the server, resends what was not
+    acknowledged after a server restart, exits 0 once everything is acknowledged (3: no
+    server, 4: unacknowledged).
+
+    --standalone closes the agent's own loops with the server's back end in this process
+    (the run `cpslam run --seq SEQ` makes): trajectory.tum is then the loop-corrected
+    trajectory (the final pose graph's), trajectory_odometry.tum the same frames without loop
+    corrections, metrics.json counts the loops, and RUN/ also gets the back end's outputs
+    (metrics.json with loops found and accepted, trajectories/, fused_map.ply, pose_graph.g2o,
+    evaluation.json when the sequence has ground truth). --standalone --no-loops runs the
+    odometry alone: trajectory.tum is the odometry, and --resume continues such a run.
+
+    Ctrl-C or SIGTERM stops the run and saves what exists (exit 130); with loop closure the
+    run stops after the current frame and still runs the last pose graph (a second signal
+    exits at once).
     Torch uses every core this process may use (run.num_threads: auto); beside other busy
     processes on the same cores, give it fewer (--set run.num_threads=1).
 
@@ -83,6 +102,10 @@ def agent(
       cpslam-agent --seq /data/office --agent-id robot-2 --connect tcp/10.0.0.5:7447 --session lab
 
       cpslam-agent --seq runs/data/room/agent_0 --standalone --out runs/room
+
+      cpslam-agent --seq runs/data/room/agent_0 --standalone --no-loops --out runs/odo
+
+      cpslam-agent --seq data/room --standalone --no-loops --resume runs/odo/agent_0/state.pt
 
       cpslam-agent --seq ../shared/data/7scenes-kitchen-0-299 --standalone --frames 0:100
 
@@ -111,8 +134,11 @@ def agent(
         torch_device = resolve_device(cfg.run.device)
     except ValueError as err:
         fail(str(err))
-    if resume is not None and not standalone:
-        fail("--resume works with --standalone only")
+    if no_loops and not standalone:
+        fail("--no-loops works with --standalone only (networked, the server closes loops)")
+    if resume is not None and not (standalone and no_loops):
+        fail("--resume works with --standalone --no-loops only (it continues the odometry; "
+             "the loop-closing back end keeps no state to resume)")
     if resume is not None and not resume.is_file():
         fail(f"--resume {resume}: no such file")
 
@@ -125,12 +151,19 @@ def agent(
     threads = configure_torch(cfg.run.num_threads, cfg.run.deterministic)
     run_dir = out if out is not None else create_run_dir(cfg.run.out, cfg.run.name)
     check_output(run_dir / f"agent_{agent_id}", overwrite)
+    loops = standalone and not no_loops
+    if loops:  # the back end's outputs of an earlier run in RUN
+        for name in ("metrics.json", "trajectories"):
+            check_output(run_dir / name, overwrite)
     run_dir.mkdir(parents=True, exist_ok=True)
     logger.info("agent %s: %s (%s, %d frames) on %s (%d CPU threads) → %s", agent_id, seq,
                 sequence.format, len(sequence), torch_device, threads, run_dir)
     if not standalone:
         raise typer.Exit(_networked(cfg, sequence, agent_id, run_dir, torch_device, wait_timeout,
                                     ack_timeout, not no_progress))
+    if loops:
+        raise typer.Exit(_with_loops(cfg, sequence, agent_id, run_dir, torch_device,
+                                     not no_progress))
     result = run_standalone(cfg, sequence, run_dir, torch_device, agent_id=agent_id,
                             resume=resume, show_progress=not no_progress)
     typer.echo(f"{result.frames_done}/{result.frames_total} frames in {result.wall_time_s:.1f} s "
@@ -139,34 +172,35 @@ def agent(
         raise typer.Exit(ExitCode.INTERRUPTED)
 
 
+def _with_loops(cfg, sequence, agent_id: str, run_dir: Path, device: str,
+                show_progress: bool) -> int:
+    """The standalone run with loop closure: `cpslam run`'s lock-step run of this one agent
+    and the back end, with SIGINT/SIGTERM ending the frames early."""
+    from cpslam.common.cli import stop_on_signals
+    from cpslam.run import print_summary, run_collab
+
+    with stop_on_signals() as stop:
+        result = run_collab(cfg, [sequence], run_dir, device, agent_ids=[agent_id],
+                            show_progress=show_progress, stop=stop)
+    print_summary(result, "cpslam-agent --standalone")
+    typer.echo(f"{result.frames.get(agent_id, 0)}/{len(sequence)} frames in "
+               f"{result.wall_s:.1f} s → {run_dir / f'agent_{agent_id}'}")
+    return ExitCode.INTERRUPTED if result.interrupted else ExitCode.OK
+
+
 def _networked(cfg, sequence, agent_id: str, run_dir: Path, device: str, wait_timeout: float,
                ack_timeout: float, show_progress: bool) -> int:
     """Run against a server with SIGINT/SIGTERM stopping the stream cleanly."""
-    import signal
-    import threading
-
     from cpslam.agent.daemon import run_networked
+    from cpslam.common.cli import stop_on_signals
     from cpslam.common.config import save_config
     from cpslam.common.logs import log_to_file
 
     log_to_file(run_dir / f"agent_{agent_id}" / "agent.log")
     save_config(cfg, run_dir / f"agent_{agent_id}" / "config.yaml")
-    stop = threading.Event()
-
-    def handler(signum: int, _frame: object) -> None:
-        if stop.is_set():
-            raise SystemExit(ExitCode.INTERRUPTED)
-        logger.info("%s: stopping after this frame (again to exit at once)",
-                    signal.Signals(signum).name)
-        stop.set()
-
-    previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
+    with stop_on_signals() as stop:
         return run_networked(cfg, sequence, agent_id, run_dir, device, wait_timeout,
                              ack_timeout, show_progress, stop)
-    finally:
-        for sig, old in previous.items():
-            signal.signal(sig, old)
 
 
 def main() -> None:

@@ -1,7 +1,10 @@
 """Single-agent odometry across scenes, thread counts and CPU code paths: accuracy, failures
 and speed, printed as tables and written as JSON.
 
-Runs the agent's front end (`Odometry`: tracking, mapping, keyframes; no loop closure) on
+Runs the agent's front end (`Odometry`: tracking, mapping, keyframes; `--loops off`) and the
+standalone agent with loop closure (`cpslam-agent --standalone`: the front end with the
+server's back end in one process, closing the agent's own loops; `--loops on`), by default
+both, side by side per sequence, on
 
 - synthetic scenes: `--scenes N` scenes with seeds `--scene-base`, `--scene-base` + 1, ...:
   room loops and apartment walks in turn, every other pair with Kinect-like depth noise
@@ -21,7 +24,10 @@ Every sequence runs once per `--threads` count (torch threads), `--capability` (
 `--seeds` value (run.seed: pixel draws and ray jitter), each run in its own process, as many
 at once as the cores allow (`--jobs`). A run "lost track" when a frame's position error,
 after the alignment, exceeds 10 cm; the recovery's events (frames found suspect, recovered,
-lost: `cpslam.agent.recovery`) are counted per run.
+lost: `cpslam.agent.recovery`) are counted per run. With loop closure the ATE is the final
+pose graph's trajectory, and the loops found and accepted are counted; the JSON's runs say
+`loops` "off" or "on", a sequence's summary is over its runs without loop closure with
+`with_loops` (mean, worst, loops) beside it, and `synthetic_with_loops` sums those runs.
 
 Timings are wall-clock on this machine (runs side by side share it; on CUDA synchronised per
 frame). The paper's figures on an RTX 3090 (tracking 0.30 s per frame, mapping 10.1 s per
@@ -31,9 +37,8 @@ the peak GPU memory. `--max-seconds S` stops each run after the frame that passe
 
 Usage: python bench/odometry.py [--preset cpu] [--scenes 8] [--scene-base 0] [--threads 1 2]
        [--capability default avx2] [--seeds 0] [--frames 300] [--only synth|real]
-       [--set a.b=v ...] [--jobs N] [--device cpu] [--real PATH] [--synth DIR]
-       [--max-seconds S]
-       [--json PATH]
+       [--loops off|on|both] [--set a.b=v ...] [--jobs N] [--device cpu] [--real PATH]
+       [--synth DIR] [--max-seconds S] [--json PATH]
 """
 
 from __future__ import annotations
@@ -75,6 +80,9 @@ def main() -> None:
                         choices=("default", "avx2"))
     parser.add_argument("--seeds", type=int, nargs="+", default=[0], help="run.seed values")
     parser.add_argument("--only", choices=("synth", "real"), default=None)
+    parser.add_argument("--loops", choices=("off", "on", "both"), default="both",
+                        help="without loop closure (the odometry), with it (the standalone "
+                        "agent's back end), or both side by side")
     parser.add_argument("--set", nargs="*", default=[], help="config overrides a.b=value")
     parser.add_argument("--jobs", type=int, default=0,
                         help="runs at once (0: the cores divided by the runs' threads)")
@@ -95,7 +103,7 @@ def main() -> None:
     report = bench_header("odometry", sys.argv)
     report.update(preset=args.preset, overrides=args.set, frames=args.frames,
                   device=args.device, max_seconds=args.max_seconds or None,
-                  paper_rtx3090=PAPER)
+                  loops=args.loops, paper_rtx3090=PAPER)
     sequences: list[dict] = []
     if args.only in (None, "synth") and args.synth is not None:
         if not (args.synth / "agent_0").is_dir():
@@ -115,9 +123,11 @@ def main() -> None:
             report["real_skipped"] = f"no data at {args.real}"
     jobs = [{"sequence": seq, "preset": args.preset, "overrides": args.set,
              "frames": args.frames, "device": args.device, "threads": threads,
-             "capability": cap, "seed": seed, "max_seconds": args.max_seconds or None}
+             "capability": cap, "seed": seed, "max_seconds": args.max_seconds or None,
+             "loops": loops}
             for threads in args.threads for cap in args.capability for seed in args.seeds
-            for seq in sequences]
+            for seq in sequences
+            for loops in (("off", "on") if args.loops == "both" else (args.loops,))]
     report["runs"] = _run_all(jobs, args.jobs)
     if open3d_available():
         report["open3d"] = {seq["name"]: open3d_odometry(seq, args.frames) for seq in sequences}
@@ -151,11 +161,11 @@ def _subprocess(job: dict) -> dict:
     if job["capability"] != "default":
         env["ATEN_CPU_CAPABILITY"] = job["capability"]
     name = job["sequence"]["name"]
-    print(f"  {name}: {job['threads']} thread(s), {job['capability']}, seed {job['seed']}",
-          file=sys.stderr, flush=True)
+    print(f"  {name}: {job['threads']} thread(s), {job['capability']}, seed {job['seed']}, "
+          f"loops {job['loops']}", file=sys.stderr, flush=True)
     done = subprocess.run([sys.executable, __file__, "--job", json.dumps(job)], env=env,
                           capture_output=True, text=True)
-    key = {k: job[k] for k in ("threads", "capability", "seed")}
+    key = {k: job[k] for k in ("threads", "capability", "seed", "loops")}
     if done.returncode != 0:
         return {"sequence": name, **key, "error": done.stderr.strip()[-2000:]}
     return {"sequence": name, "kind": job["sequence"]["kind"], **key,
@@ -164,34 +174,22 @@ def _subprocess(job: dict) -> dict:
 
 def summarise(runs: list[dict], open3d: dict) -> dict:
     """Per sequence and over all synthetic runs: mean and worst ATE, runs over the bars,
-    lost runs and recovery events; for the real frames the ratio to the better Open3D."""
+    lost runs and recovery events; for the real frames the ratio to the better Open3D. Runs
+    without loop closure (no `loops` field: older reports) fill the fields; runs with it go
+    to `with_loops` beside them, and to `synthetic_with_loops`."""
     out: dict = {"per_sequence": {}}
     for name in dict.fromkeys(r["sequence"] for r in runs):
-        ok = [r for r in runs if r["sequence"] == name and _measured(r)]
-        key = "ate_origin_cm" if ok and ok[0]["kind"] != "real" else "ate_se3_cm"
-        if not ok:
-            out["per_sequence"][name] = {"errors": len([r for r in runs
-                                                        if r["sequence"] == name])}
-            continue
-        values = [r[key] for r in ok]
-        entry = {"metric": key, "runs": len(ok), "mean": round(float(np.mean(values)), 3),
-                 "worst": round(float(np.max(values)), 3),
-                 "lost_runs": sum(r["max_error_cm"] > LOST_CM for r in ok),
-                 "events": _sum_events(ok),
-                 "s_per_frame": round(float(np.mean([r["s_per_frame"] for r in ok])), 3)}
-        o3d = open3d.get(name, {})
-        if ok[0]["kind"] == "real" and o3d:
-            best = min(o3d.values(), key=lambda v: v["ate_se3_cm"])
-            entry["ratio_mean_over_best_open3d"] = round(entry["mean"] / best["ate_se3_cm"], 3)
-            entry["ratio_worst_over_best_open3d"] = round(entry["worst"] / best["ate_se3_cm"], 3)
-            pieces = [r["ate_se3_pieces_cm"] for r in ok if "ate_se3_pieces_cm" in r]
-            best_pieces = min(v.get("ate_se3_pieces_cm", np.inf) for v in o3d.values())
-            if pieces and np.isfinite(best_pieces):
-                entry["pieces_mean"] = round(float(np.mean(pieces)), 3)
-                entry["ratio_pieces_mean_over_best_open3d"] = round(
-                    entry["pieces_mean"] / best_pieces, 3)
+        mine = [r for r in runs if r["sequence"] == name]
+        ok = [r for r in mine if _measured(r) and _loops(r) == "off"]
+        on = [r for r in mine if _measured(r) and _loops(r) == "on"]
+        entry = _sequence_summary(ok, open3d.get(name, {})) if ok else {}
+        if on:
+            entry["with_loops"] = _loops_summary(on)
+        if not ok and not on:
+            entry = {"errors": len(mine)}
         out["per_sequence"][name] = entry
-    synth = [r for r in runs if r.get("kind") not in (None, "real") and _measured(r)]
+    good = [r for r in runs if r.get("kind") not in (None, "real") and _measured(r)]
+    synth = [r for r in good if _loops(r) == "off"]
     if synth:
         values = [r["ate_origin_cm"] for r in synth]
         out["synthetic"] = {"runs": len(synth), "mean_origin_cm": round(float(np.mean(values)), 3),
@@ -199,6 +197,9 @@ def summarise(runs: list[dict], open3d: dict) -> dict:
                             "runs_over_1cm": sum(v > 1.0 for v in values),
                             "lost_runs": sum(r["max_error_cm"] > LOST_CM for r in synth),
                             "events": _sum_events(synth)}
+    synth_on = [r for r in good if _loops(r) == "on"]
+    if synth_on:
+        out["synthetic_with_loops"] = _loops_summary(synth_on)
     out["failed_runs"] = sum("error" in r for r in runs)
     return out
 
@@ -208,6 +209,44 @@ def _measured(run: dict) -> bool:
     return "error" not in run and "accuracy_error" not in run
 
 
+def _loops(run: dict) -> str:
+    return run.get("loops", "off")
+
+
+def _metric(runs: list[dict]) -> str:
+    return "ate_origin_cm" if runs[0]["kind"] != "real" else "ate_se3_cm"
+
+
+def _sequence_summary(ok: list[dict], o3d: dict) -> dict:
+    key = _metric(ok)
+    values = [r[key] for r in ok]
+    entry = {"metric": key, "runs": len(ok), "mean": round(float(np.mean(values)), 3),
+             "worst": round(float(np.max(values)), 3),
+             "lost_runs": sum(r["max_error_cm"] > LOST_CM for r in ok),
+             "events": _sum_events(ok),
+             "s_per_frame": round(float(np.mean([r["s_per_frame"] for r in ok])), 3)}
+    if ok[0]["kind"] == "real" and o3d:
+        best = min(o3d.values(), key=lambda v: v["ate_se3_cm"])
+        entry["ratio_mean_over_best_open3d"] = round(entry["mean"] / best["ate_se3_cm"], 3)
+        entry["ratio_worst_over_best_open3d"] = round(entry["worst"] / best["ate_se3_cm"], 3)
+        pieces = [r["ate_se3_pieces_cm"] for r in ok]
+        best_pieces = min(v["ate_se3_pieces_cm"] for v in o3d.values())
+        entry["pieces_mean"] = round(float(np.mean(pieces)), 3)
+        entry["ratio_pieces_mean_over_best_open3d"] = round(entry["pieces_mean"] / best_pieces, 3)
+    return entry
+
+
+def _loops_summary(on: list[dict]) -> dict:
+    """Runs with loop closure: their ATE (each run's own metric), lost runs and loops."""
+    values = [r[_metric([r])] for r in on]
+    return {"metric": _metric(on), "runs": len(on), "mean": round(float(np.mean(values)), 3),
+            "worst": round(float(np.max(values)), 3),
+            "lost_runs": sum(r["max_error_cm"] > LOST_CM for r in on),
+            "loops_found": int(sum(r.get("loops_found", 0) for r in on)),
+            "loops_accepted": int(sum(r.get("loops_accepted", 0) for r in on)),
+            "s_per_frame": round(float(np.mean([r["s_per_frame"] for r in on])), 3)}
+
+
 def _sum_events(runs: list[dict]) -> dict:
     keys = ("suspect", "recovered", "lost")
     return {k: int(sum(r.get("events", {}).get(k, 0) for r in runs)) for k in keys}
@@ -215,30 +254,35 @@ def _sum_events(runs: list[dict]) -> dict:
 
 def print_tables(report: dict) -> None:
     """Per run, per sequence and overall."""
-    rows = [("sequence", "threads", "cpu", "seed", "ATE origin cm", "ATE se3 cm",
-             "pieces cm", "max err cm", "RPE1 mm/deg", "events s/r/l", "s/frame",
+    rows = [("sequence", "loops", "threads", "cpu", "seed", "ATE origin cm", "ATE se3 cm",
+             "pieces cm", "max err cm", "RPE1 mm/deg", "events s/r/l", "loops a/f", "s/frame",
              "track s", "map s/call", "frames", "GPU MiB")]
     for r in report["runs"]:
+        head = (r["sequence"], _loops(r), str(r["threads"]), r["capability"], str(r["seed"]))
         if "error" in r:
-            rows.append((r["sequence"], str(r["threads"]), r["capability"], str(r["seed"]),
-                         "error", "", "", "", "", "", "", "", "", "", ""))
+            rows.append((*head, "error", *[""] * 11))
             continue
         ev = r.get("events", {})
-        rows.append((r["sequence"], str(r["threads"]), r["capability"], str(r["seed"]),
-                     str(r.get("ate_origin_cm", "-")), str(r.get("ate_se3_cm", "-")),
+        rows.append((*head, str(r.get("ate_origin_cm", "-")), str(r.get("ate_se3_cm", "-")),
                      str(r.get("ate_se3_pieces_cm", "-")), str(r.get("max_error_cm", "-")),
                      f"{r.get('rpe1_mm', '-')}/{r.get('rpe1_deg', '-')}",
                      f"{ev.get('suspect', 0)}/{ev.get('recovered', 0)}/{ev.get('lost', 0)}",
+                     (f"{r.get('loops_accepted', 0)}/{r.get('loops_found', 0)}"
+                      if _loops(r) == "on" else "-"),
                      str(r["s_per_frame"]), str(r["tracking_s_per_frame"]),
                      str(r["mapping_s_per_call"]), str(r.get("frames", "-")),
                      str(r.get("peak_gpu_memory_mb") or "-")))
     _print_rows(rows)
     print()
     rows = [("sequence", "metric", "runs", "mean", "worst", "lost runs", "Open3D",
-             "ratio mean/worst", "pieces ratio")]
+             "ratio mean/worst", "pieces ratio", "loops: mean", "worst", "lost", "loops a/f")]
     for name, e in report["summary"]["per_sequence"].items():
+        lp = e.get("with_loops")
+        with_loops = ((str(lp["mean"]), str(lp["worst"]), str(lp["lost_runs"]),
+                       f"{lp['loops_accepted']}/{lp['loops_found']}") if lp else ("-",) * 4)
         if "mean" not in e:
-            rows.append((name, "error", "", "", "", "", "", "", ""))
+            rows.append((name, "error" if not lp else lp["metric"], "", "", "", "", "", "", "",
+                         *with_loops))
             continue
         o3d = report["open3d"].get(name, {})
         o3d_text = " / ".join(f"{size} {v.get('ate_origin_cm', v['ate_se3_cm'])}"
@@ -247,13 +291,18 @@ def print_tables(report: dict) -> None:
                  if "ratio_mean_over_best_open3d" in e else "-")
         rows.append((name, e["metric"], str(e["runs"]), str(e["mean"]), str(e["worst"]),
                      str(e["lost_runs"]), o3d_text or "-", ratio,
-                     str(e.get("ratio_pieces_mean_over_best_open3d", "-"))))
+                     str(e.get("ratio_pieces_mean_over_best_open3d", "-")), *with_loops))
     _print_rows(rows)
     s = report["summary"].get("synthetic")
     if s:
         print(f"\nsynthetic: {s['runs']} runs, origin ATE mean {s['mean_origin_cm']} cm, worst "
               f"{s['worst_origin_cm']} cm, {s['runs_over_1cm']} over 1 cm, {s['lost_runs']} "
               f"lost track; events {s['events']}")
+    s = report["summary"].get("synthetic_with_loops")
+    if s:
+        print(f"synthetic with loop closure: {s['runs']} runs, origin ATE mean {s['mean']} cm, "
+              f"worst {s['worst']} cm, {s['lost_runs']} lost track; loops accepted "
+              f"{s['loops_accepted']} of {s['loops_found']} found")
 
 
 def _print_rows(rows: list[tuple[str, ...]]) -> None:

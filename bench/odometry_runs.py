@@ -64,7 +64,10 @@ def run_job(job: dict) -> dict:
     seq = open_sequence(seq_info["path"], frames=slice(0, job["frames"]))
     real = seq_info["kind"] == "real"
     factor = cfg.camera.downscale if real else 1.0  # synthetic scenes are rendered at 320x240
-    out = run_odometry(cfg, seq, factor, device, real, job.get("max_seconds"))
+    if job.get("loops", "off") == "on":
+        out = run_with_loops(cfg, seq, factor, device, real)
+    else:
+        out = run_odometry(cfg, seq, factor, device, real, job.get("max_seconds"))
     cuda = device.startswith("cuda")
     out.update(torch_threads=threads, cpu_capability=os.environ.get("ATEN_CPU_CAPABILITY",
                                                                     "default"),
@@ -136,6 +139,52 @@ def run_odometry(cfg, seq, factor: float, device: str, real: bool,
         "points": len(odometry.point_map),
         "keyframes": len(odometry.keyframes),
         "schedule": odometry.schedule_stats(),
+    })
+    return out
+
+
+def run_with_loops(cfg, seq, factor: float, device: str, real: bool) -> dict:
+    """The standalone run with loop closure (`cpslam-agent --standalone`: `run_collab` with
+    this one sequence, in a scratch folder): accuracy of the final pose-graph trajectory (and
+    the ATE of the same run's odometry chain), the loops, the same timings as `run_odometry`
+    (per frame, the back end's work included)."""
+    import tempfile
+
+    from cpslam.run import run_collab
+
+    cfg = cfg.model_copy(update={"camera": cfg.camera.model_copy(update={"downscale": factor})})
+    with tempfile.TemporaryDirectory(prefix="bench-loops-") as tmp:
+        result = run_collab(cfg, [seq], Path(tmp), device, show_progress=False)
+    node, final = result.nodes["0"], result.final.agents[0]
+    frames = node.results
+    # Calls finish in order: the first reported is frame 0's (later when concurrent).
+    reported = [r for r in frames if r.map_steps]
+    first_map = reported[0].map_time_s if reported else 0.0
+    mapped = reported[1:]
+    loops = result.final.metrics.get("loops", {})
+    out = {"frames": len(seq), "resolution": f"{node.intrinsics.width}x{node.intrinsics.height}"}
+    out.update(accuracy(seq, final.stamps, final.T_group_cam, real))
+    # The same run's frames chained from the odometry alone: tells the pose graph's effect
+    # apart from that of the corrections the agent tracked against.
+    stamps, poses = result.odometry["0"]
+    out["odometry_in_run"] = {k: v for k, v in accuracy(seq, stamps, poses, real).items()
+                              if k.startswith("ate_")}
+    out.update({
+        "loops_found": int(loops.get("found", 0)),
+        "loops_accepted": int(loops.get("accepted", 0)),
+        "events": node.odometry.tracking_events(),
+        "s_per_frame": round(result.wall_s / len(seq), 3),
+        "s_per_frame_after_first": round((result.wall_s - first_map)
+                                         / max(len(seq) - 1, 1), 3),
+        "tracking_s_per_frame": (round(float(np.mean([r.track_time_s for r in frames[1:]])), 3)
+                                 if len(frames) > 1 else None),
+        "mapping_s_per_call": (round(float(np.mean([r.map_time_s for r in mapped])), 3)
+                               if mapped else None),
+        "mapping_s_per_iter": (round(float(np.mean([r.map_optimise_time_s / r.map_steps
+                                                     for r in mapped])), 4) if mapped else None),
+        "first_mapping_s": round(first_map, 2),
+        "points": len(node.odometry.point_map),
+        "keyframes": len(node.odometry.keyframes),
     })
     return out
 

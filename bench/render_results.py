@@ -82,11 +82,24 @@ def _odometry(report: dict) -> str:
                    f"over 1 cm, {synth['lost_runs']} lost track; recovery events (suspect / "
                    f"recovered / lost frames): {synth['events']['suspect']} / "
                    f"{synth['events']['recovered']} / {synth['events']['lost']}.\n")
+    synth_loops = s.get("synthetic_with_loops")
+    if synth_loops:
+        out.append(f"With loop closure (the standalone agent's back end): {synth_loops['runs']} "
+                   f"runs, origin ATE mean **{synth_loops['mean']} cm**, worst "
+                   f"**{synth_loops['worst']} cm**, {synth_loops['lost_runs']} lost track; "
+                   f"loops accepted {synth_loops['loops_accepted']} of "
+                   f"{synth_loops['loops_found']} found.\n")
+    # Reports from before the loop-closure runs have no with_loops: their table is unchanged.
+    loops = any("with_loops" in e for e in s["per_sequence"].values())
+    extra = ("with loops mean / worst cm", "loops accepted / found") if loops else ()
     rows = [("sequence", "ATE", "runs", "mean cm", "worst cm", "lost runs",
-             "Open3D cm", "ratio mean / worst", "pieces ratio", "s/frame")]
+             "Open3D cm", "ratio mean / worst", "pieces ratio", "s/frame", *extra)]
     for name, e in s["per_sequence"].items():
+        lp = e.get("with_loops")
+        cells = ((f"{lp['mean']} / {lp['worst']}", f"{lp['loops_accepted']} / "
+                  f"{lp['loops_found']}") if lp else ("-", "-")) if loops else ()
         if "mean" not in e:
-            rows.append((name, "error", "", "", "", "", "", "", "", ""))
+            rows.append((name, "-" if lp else "error", "", "", "", "", "", "", "", "", *cells))
             continue
         o3d = report.get("open3d", {}).get(name, {})
         metric = "origin" if e["metric"] == "ate_origin_cm" else "se3"
@@ -95,13 +108,14 @@ def _odometry(report: dict) -> str:
                  if "ratio_mean_over_best_open3d" in e else "-")
         rows.append((name, metric, e["runs"], e["mean"], e["worst"], e["lost_runs"],
                      o3d_text or "-", ratio, e.get("ratio_pieces_mean_over_best_open3d", "-"),
-                     e["s_per_frame"]))
+                     e["s_per_frame"], *cells))
     out.append(_table(rows))
-    runs = [r for r in report["runs"] if "error" not in r]
+    runs = [r for r in report["runs"] if "error" not in r and r.get("loops", "off") == "off"]
     if runs:
         keys = ("tracking_s_per_frame", "mapping_s_per_call", "s_per_frame_after_first")
         timing = {k: round(sum(r[k] or 0 for r in runs) / len(runs), 3) for k in keys}
-        out.append(f"\nMean over the runs: tracking {timing['tracking_s_per_frame']} s per "
+        which = " without loop closure" if loops else ""
+        out.append(f"\nMean over the runs{which}: tracking {timing['tracking_s_per_frame']} s per "
                    f"frame, mapping {timing['mapping_s_per_call']} s per call, "
                    f"{timing['s_per_frame_after_first']} s per frame after the first "
                    f"(threads {sorted({r['threads'] for r in runs})}, CPU code paths "

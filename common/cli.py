@@ -8,6 +8,11 @@ One place for what every command has in common, so that a flag means the same ev
 
 from __future__ import annotations
 
+import contextlib
+import logging
+import signal
+import threading
+from collections.abc import Iterator
 from enum import IntEnum
 from pathlib import Path
 from typing import Annotated, Any, NoReturn
@@ -16,7 +21,9 @@ import typer
 from typer.core import TyperCommand, TyperGroup
 
 __all__ = ["App", "ExitCode", "JsonOpt", "OverwriteOpt", "check_output", "fail",
-           "out_option", "verbosity"]
+           "out_option", "stop_on_signals", "verbosity"]
+
+logger = logging.getLogger(__name__)
 
 
 class ExitCode(IntEnum):
@@ -52,6 +59,28 @@ def fail(message: str, code: ExitCode = ExitCode.USAGE) -> NoReturn:
     """Print `error: message` to stderr and exit with `code`."""
     typer.echo(f"error: {message}", err=True)
     raise typer.Exit(int(code))
+
+
+@contextlib.contextmanager
+def stop_on_signals() -> Iterator[threading.Event]:
+    """SIGINT and SIGTERM set the yielded event (the loop stops after its current step and
+    writes what it did); a second signal exits at once with `ExitCode.INTERRUPTED`. The
+    previous handlers come back on exit. Main thread only (Python's rule for handlers)."""
+    stop = threading.Event()
+
+    def handler(signum: int, _frame: object) -> None:
+        if stop.is_set():
+            raise SystemExit(ExitCode.INTERRUPTED)
+        logger.warning("%s: stopping after this frame (again to exit at once)",
+                       signal.Signals(signum).name)
+        stop.set()
+
+    previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield stop
+    finally:
+        for sig, old in previous.items():
+            signal.signal(sig, old)
 
 
 def check_output(path: Path, overwrite: bool) -> None:

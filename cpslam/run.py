@@ -7,11 +7,17 @@ arrived in (agent, seq) order and steps, the bus is flushed again, and every age
 what came back. The back end's clock is virtual (frame t at t times the frame period), so
 time-based choices (round time-outs, sharing) do not depend on the machine's speed.
 
-Outputs under RUN: ``config.yaml``; per agent ``agent_<id>/`` (as a standalone run);
-``trajectories/agent_<id>_local.tum`` and ``_global.tum`` (and ``_odometry.tum``: the
-group-frame trajectory without any pose-graph correction, for comparison), ``fused_map.*``,
-``pose_graph.g2o``, ``metrics.json`` (server) and, when the sequences have ground truth,
-``evaluation.json`` (computed after the run; nothing reads ground truth while it runs).
+Outputs under RUN: ``config.yaml``; per agent ``agent_<id>/`` (as a standalone run, with
+``trajectory.tum`` the final pose-graph-corrected trajectory in the frame of the agent's map,
+its group's, ``trajectory_odometry.tum`` the same frames without any loop correction, and the
+agent's loops in ``metrics.json``); ``trajectories/agent_<id>_local.tum`` and ``_global.tum``
+(and ``_odometry.tum``: the group-frame trajectory without any pose-graph correction, for
+comparison), ``fused_map.*``, ``pose_graph.g2o``, ``metrics.json`` (server) and, when the
+sequences have ground truth, ``evaluation.json`` (computed after the run; nothing reads
+ground truth while it runs). ``cpslam-agent --standalone`` is this run with one sequence.
+
+A set `stop` event ends the frames early (Ctrl-C, SIGTERM); everything is still flushed,
+optimised and written, and the result says it was interrupted.
 
 Relative poses of loops are the coarse geometric estimates, refined by tracking the loop
 keyframe against the other sub-map when ``loop.refine`` is on (`cpslam.server.loops.PoseRefiner`,
@@ -21,6 +27,7 @@ wired by `Backend.from_config`; on by default and in ``paper``, off in ``cpu`` a
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,7 +36,14 @@ from typing import TYPE_CHECKING, Annotated, Any
 import numpy as np
 import typer
 
-from cpslam.common.cli import OverwriteOpt, check_output, fail, out_option
+from cpslam.common.cli import (
+    ExitCode,
+    OverwriteOpt,
+    check_output,
+    fail,
+    out_option,
+    stop_on_signals,
+)
 from cpslam.common.config.cli import ConfigOpt, DeviceOpt, PresetOpt, SeedOpt, SetOpt
 from cpslam.common.datasets.cli import FormatOpt, FramesOpt
 from cpslam.protocol import keys
@@ -40,7 +54,7 @@ if TYPE_CHECKING:
     from cpslam.common.datasets import RGBDSequence
     from cpslam.server.result import FinalResult
 
-__all__ = ["CollabRun", "LockstepBarrier", "evaluate_run", "run", "run_collab"]
+__all__ = ["CollabRun", "LockstepBarrier", "evaluate_run", "print_summary", "run", "run_collab"]
 
 logger = logging.getLogger(__name__)
 
@@ -57,6 +71,10 @@ class CollabRun:
     odometry: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     """Per agent (stamps, T_group_cam) without pose-graph corrections."""
     evaluation: dict[str, Any] = field(default_factory=dict)
+    interrupted: bool = False
+    """The `stop` event ended the frames before the sequences' end."""
+    nodes: dict[str, Any] = field(default_factory=dict)
+    """The agents' `AgentNode`s (closed; their odometry and frame results stay readable)."""
 
 
 class LockstepBarrier:
@@ -87,8 +105,10 @@ class LockstepBarrier:
 
 def run_collab(cfg: CpslamConfig, sequences: list[RGBDSequence], run_dir: Path,
                device: str = "cpu", agent_ids: list[str] | None = None,
-               show_progress: bool = True, describe: Any = None) -> CollabRun:
-    """Run one agent per sequence and the server in lock-step; write everything to run_dir."""
+               show_progress: bool = True, describe: Any = None,
+               stop: threading.Event | None = None) -> CollabRun:
+    """Run one agent per sequence and the server in lock-step; write everything to run_dir.
+    A set `stop` ends the frames early; what was done is still optimised and written."""
     import torch
 
     from cpslam.agent.node import AgentNode
@@ -110,6 +130,7 @@ def run_collab(cfg: CpslamConfig, sequences: list[RGBDSequence], run_dir: Path,
     network = InMemoryNetwork()
     buses = [InMemoryBus(network) for _ in range(len(sequences) + 1)]
     t0 = time.perf_counter()
+    interrupted = False
     try:
         server = ServerNode(cfg, buses[0], run_dir, now=lambda: clock[0]).start()
         agents = [AgentNode(cfg, seq, bus, aid, run_dir, device, describe=describe).start()
@@ -128,6 +149,11 @@ def run_collab(cfg: CpslamConfig, sequences: list[RGBDSequence], run_dir: Path,
         with make_progress(disable=not show_progress) as bar:
             task = bar.add_task("agents " + ",".join(ids), total=total, info="")
             for t in range(total):
+                if stop is not None and stop.is_set():
+                    interrupted = True
+                    logger.warning("stopped after %d of %d frames: writing what was done", t,
+                                   total)
+                    break
                 for node, stream, seq in zip(agents, streams, sequences, strict=True):
                     if t < len(seq):
                         node.step(next(stream))
@@ -144,11 +170,12 @@ def run_collab(cfg: CpslamConfig, sequences: list[RGBDSequence], run_dir: Path,
                 logger.warning("agent %s: %d messages unacknowledged at the end", node.agent_id,
                                len(node.link.outbox))
         for node in agents:
-            node.write_outputs()
+            node.write_outputs({"interrupted": True} if interrupted else None)
         final = server.finalise()
         odometry = _odometry_trajectories(server)
         for aid, (stamps, poses) in odometry.items():
             write_tum(run_dir / "trajectories" / f"agent_{aid}_odometry.tum", stamps, poses)
+        _write_agent_trajectories(run_dir, final, odometry)
         frames = {node.agent_id: len(node.results) for node in agents}
         for node in agents:
             node.close()
@@ -156,7 +183,8 @@ def run_collab(cfg: CpslamConfig, sequences: list[RGBDSequence], run_dir: Path,
     finally:
         for bus in buses:
             bus.close()
-    out = CollabRun(run_dir, ids, final, frames, time.perf_counter() - t0, odometry)
+    out = CollabRun(run_dir, ids, final, frames, time.perf_counter() - t0, odometry,
+                    interrupted=interrupted, nodes={n.agent_id: n for n in agents})
     out.evaluation = evaluate_run(out, sequences)
     if out.evaluation:
         from cpslam.common.rundir import write_json
@@ -205,6 +233,37 @@ def _frame_period(seq: RGBDSequence) -> float:
     return 1.0 / 30.0
 
 
+def _write_agent_trajectories(run_dir: Path, final: FinalResult,
+                              odometry: dict[str, tuple[np.ndarray, np.ndarray]]) -> None:
+    """Each agent folder's trajectory.tum becomes the final pose-graph-corrected trajectory in
+    its group's frame (the frame the agent's map ends in), trajectory_odometry.tum the same
+    frames without loop corrections, and its metrics.json gets the loops it took part in."""
+    import json
+
+    from cpslam.common.rundir import write_json
+    from cpslam.common.trajectory import write_tum
+
+    records = final.metrics.get("loops", {}).get("list", [])
+    for a in final.agents:
+        agent_dir = run_dir / f"agent_{a.agent_id}"
+        if len(a.stamps):
+            write_tum(agent_dir / "trajectory.tum", a.stamps, a.T_group_cam)
+        if a.agent_id in odometry and len(odometry[a.agent_id][0]):
+            write_tum(agent_dir / "trajectory_odometry.tum", *odometry[a.agent_id])
+        mine = [r for r in records if a.agent_id in (r["agent_a"], r["agent_b"])]
+        metrics_path = agent_dir / "metrics.json"
+        if metrics_path.is_file():
+            metrics = json.loads(metrics_path.read_text())
+            accepted = [r for r in mine if r["accepted"]]
+            # Verified pairs this agent is part of (the run's metrics.json also counts the
+            # candidates still pending at the end in "found").
+            metrics["loops"] = {
+                "verified": len(mine), "accepted": len(accepted),
+                "rejected": len(mine) - len(accepted),
+                "accepted_within_agent": sum(r["agent_a"] == r["agent_b"] for r in accepted)}
+            write_json(metrics_path, metrics)
+
+
 def _odometry_trajectories(server: Any) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """Each agent's frames chained from its odometry alone, placed in its group's frame by
     the merge alignment: the trajectory the system would have without pose graphs."""
@@ -248,6 +307,9 @@ def run(
     Writes RUN/config.yaml, RUN/agent_<id>/ (as cpslam-agent --standalone),
     RUN/trajectories/agent_<id>_local.tum (own frame) and _global.tum (group frame),
     fused_map.ply, pose_graph.g2o, metrics.json and, with ground truth, evaluation.json.
+    RUN/agent_<id>/trajectory.tum is the final pose-graph-corrected trajectory (group frame),
+    trajectory_odometry.tum the same frames without loop corrections. Ctrl-C (or SIGTERM)
+    stops after the current frame and writes what was done (exit 130); again exits at once.
 
     Examples:
 
@@ -279,18 +341,23 @@ def run(
     configure_torch(cfg.run.num_threads, cfg.run.deterministic)
     run_dir = out if out is not None else create_run_dir(cfg.run.out, cfg.run.name)
     check_output(run_dir, overwrite)
-    result = run_collab(cfg, sequences, run_dir, torch_device, show_progress=not no_progress)
-    _print_table(result)
+    with stop_on_signals() as stop:
+        result = run_collab(cfg, sequences, run_dir, torch_device,
+                            show_progress=not no_progress, stop=stop)
+    print_summary(result)
+    if result.interrupted:
+        raise typer.Exit(ExitCode.INTERRUPTED)
 
 
-def _print_table(result: CollabRun) -> None:
+def print_summary(result: CollabRun, command: str = "cpslam run") -> None:
+    """The per-agent table, the loops, merges and rounds, and the ATE with ground truth."""
     from rich.console import Console
     from rich.table import Table
 
     metrics = result.final.metrics
     loops = metrics.get("loops", {})
     ev = result.evaluation
-    table = Table(title=f"cpslam run → {result.run_dir}  ({result.wall_s:.0f} s)")
+    table = Table(title=f"{command} → {result.run_dir}  ({result.wall_s:.0f} s)")
     for col in ("agent", "frames", "group", "merged", "ATE origin (cm)", "no PGO (cm)"):
         table.add_column(col)
     for a in result.final.agents:

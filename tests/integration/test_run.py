@@ -6,10 +6,12 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 import typer
 from typer.testing import CliRunner
 
+from cpslam.common.trajectory import read_tum
 from cpslam.run import run
 
 pytest.importorskip("open3d")  # the synthetic renderer
@@ -59,8 +61,13 @@ def test_single_agent_run_writes_all_outputs(tmp_path: Path) -> None:
     for name in ("config.yaml", "metrics.json", "fused_map.ply", "fused_map.pt",
                  "pose_graph.g2o", "evaluation.json", "trajectories/agent_0_local.tum",
                  "trajectories/agent_0_global.tum", "agent_0/trajectory.tum",
-                 "agent_0/state.pt", "agent_0/map.ply"):
+                 "agent_0/trajectory_odometry.tum", "agent_0/state.pt", "agent_0/map.ply"):
         assert (out / name).is_file(), name
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["agents"]["0"]["frames"] == 30
     assert metrics["agents"]["0"]["dropped"] == {}
+    # The agent folder's trajectory is the final pose graph's (own frame: it never merged).
+    np.testing.assert_array_equal(read_tum(out / "agent_0" / "trajectory.tum")[1],
+                                  read_tum(out / "trajectories" / "agent_0_global.tum")[1])
+    agent = json.loads((out / "agent_0" / "metrics.json").read_text())
+    assert agent["loops"]["accepted"] == metrics["loops"]["accepted"]

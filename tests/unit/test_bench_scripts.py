@@ -60,6 +60,40 @@ def test_odometry_bench_summarises_runs(capsys: pytest.CaptureFixture[str]) -> N
     assert "error" in out and "1 lost track" in out
 
 
+def test_odometry_bench_puts_loop_closure_beside_the_odometry(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """Runs with loop closure fill `with_loops` and leave the odometry's fields as they were;
+    the results page reads such a report, and an older one without them unchanged."""
+    bench = _bench_module("odometry")
+    render = _bench_module("render_results")
+    base = {"sequence": "room-0", "kind": "room", "threads": 1, "capability": "default",
+            "seed": 0, "ate_se3_cm": 0.5, "max_error_cm": 2.0, "s_per_frame": 1.0,
+            "tracking_s_per_frame": 0.5, "mapping_s_per_call": 3.0,
+            "s_per_frame_after_first": 0.9}
+    runs = [{**base, "loops": "off", "ate_origin_cm": 2.0},
+            {**base, "loops": "on", "ate_origin_cm": 0.8, "loops_found": 3, "loops_accepted": 2},
+            {**base, "loops": "on", "seed": 1, "ate_origin_cm": 1.2, "max_error_cm": 11.0,
+             "loops_found": 1, "loops_accepted": 1}]
+    summary = bench.summarise(runs, {})
+    old = bench.summarise([{k: v for k, v in runs[0].items() if k != "loops"}], {})
+    room = summary["per_sequence"]["room-0"]
+    assert {k: v for k, v in room.items() if k != "with_loops"} == old["per_sequence"]["room-0"]
+    assert room["mean"] == 2.0 and room["runs"] == 1
+    assert room["with_loops"] == {"metric": "ate_origin_cm", "runs": 2, "mean": 1.0,
+                                  "worst": 1.2, "lost_runs": 1, "loops_found": 4,
+                                  "loops_accepted": 3, "s_per_frame": 1.0}
+    assert summary["synthetic"] == old["synthetic"]
+    assert summary["synthetic_with_loops"]["runs"] == 2
+    report = {"runs": runs, "summary": summary, "open3d": {}, "preset": "tiny", "overrides": []}
+    bench.print_tables(report)
+    assert "loops accepted 3 of 4 found" in capsys.readouterr().out
+    text = render._odometry(report)
+    assert "| room-0 | origin | 1 | 2.0 | 2.0 | 0 | - | - | - | 1.0 | 1.0 / 1.2 | 3 / 4 |" in text
+    assert "runs without loop closure" in text
+    plain = render._odometry({**report, "runs": runs[:1], "summary": old})
+    assert "with loops" not in plain and "| room-0 | origin | 1 | 2.0 |" in plain
+
+
 def test_odometry_bench_scenes_alternate_kind_and_noise() -> None:
     specs = _bench_module("odometry_runs").scene_specs(4, 100)
     assert [(s["kind"], s["noise"], s["seed"]) for s in specs] == [
