@@ -1,10 +1,11 @@
 """`cpslam run`: N agents and the server in one process over the in-memory bus.
 
 The debugging and integration harness: same nodes as the daemons, one `InMemoryNetwork`.
-Everything is driven from one thread in lock-step, so a CPU run is reproducible: for each
-frame t, every agent steps one frame (in order), the bus is flushed, the server handles what
-arrived in (agent, seq) order and steps, the bus is flushed again, and every agent applies
-what came back. The back end's clock is virtual (frame t at t times the frame period), so
+Everything is driven from one thread in lock-step: for each frame t, every agent steps one
+frame (in order), the bus is flushed, the server handles what arrived in (agent, seq) order
+and steps, the bus is flushed again, and every agent applies what came back. Each agent's
+mapping runs on a thread of its own unless `run.schedule` is `lockstep`; with lockstep a CPU
+run is reproducible. The back end's clock is virtual (frame t at t times the frame period), so
 time-based choices (round time-outs, sharing) do not depend on the machine's speed.
 
 Outputs under RUN: ``config.yaml``; per agent ``agent_<id>/`` (as a standalone run, with

@@ -19,8 +19,8 @@ pytest.importorskip("open3d")  # the synthetic renderer and the RGB-D odometry g
 BAD = se3_exp(np.array([0.12, -0.1, 0.12, 0.1, 0.1, -0.1]))  # 19 cm, 9.9 degrees
 FRAME = 6  # the frame that gets the bad guess
 # The cpu preset's front end with a shorter first mapping (the test's time).
-SETS = ("tracking.method=lm", "tracking.color_weight=1", "tracking.iters=10",
-        "mapping.iters_first=300", "mapping.every=3", "keyframes.every=3")
+SETS = ("run.schedule=lockstep", "tracking.method=lm", "tracking.color_weight=1",
+        "tracking.iters=10", "mapping.iters_first=300", "mapping.every=3", "keyframes.every=3")
 
 
 @pytest.fixture(scope="module")
