@@ -103,6 +103,26 @@ def test_standalone_closes_its_own_loops_unless_told_not_to(room: Path, tmp_path
     assert len(read_tum(without / "agent_0" / "trajectory.tum")[0]) == 24
 
 
+def test_concurrent_schedule_with_loops_and_without(room: Path, tmp_path: Path) -> None:
+    """The default schedule of the real presets (mapping on its own thread) through both
+    standalone paths: with loops the server's corrections reach the agent through
+    `Odometry.editing()` while mapping calls are in flight."""
+    for extra, name in (([], "loops"), (["--no-loops"], "odometry")):
+        run = tmp_path / name
+        result = _agent("--seq", str(room), "--standalone", *extra, "--out", str(run),
+                        "--set", "run.schedule=concurrent")
+        assert result.exit_code == 0, result.output
+        metrics = json.loads((run / "agent_0" / "metrics.json").read_text())
+        schedule = metrics["mapping_schedule"]
+        assert metrics["frames"] == 24 and schedule["schedule"] == "concurrent"
+        # 24 frames, tiny preset: a mapping call every 5 frames, a keyframe every 5.
+        assert schedule["jobs"] >= 5 and schedule["skipped"] <= schedule["jobs"]
+        assert len(read_tum(run / "agent_0" / "trajectory.tum")[0]) == 24
+        if not extra:
+            server = json.loads((run / "metrics.json").read_text())
+            assert server["loops"]["accepted"] >= 1
+
+
 def test_render_a_string_agent_id_from_ground_truth(room: Path, tmp_path: Path) -> None:
     """`cpslam render --agent robot-2` finds agent_robot-2/; the --help example's form
     (`--poses <dataset folder> --relative`) puts the ground truth into the agent's world."""
