@@ -62,7 +62,8 @@ def _provenance(report: dict) -> str:
     gpu = f", GPU {m['gpu']}" if m.get("gpu") else ""
     return (f"`{report.get('command', '?')}` at commit `{report.get('commit', '?')}`{dirty}; "
             f"{m.get('cpu', '?')}, {m.get('cores', '?')} cores ({m.get('simd', '?')}){gpu}, "
-            f"Python {m.get('python', '?')}, torch {m.get('torch', '?')}.")
+            f"Python {m.get('python', '?')}, torch {m.get('torch', '?')}."
+            + (f" Settings: {report['preset_state']}." if report.get("preset_state") else ""))
 
 
 def _table(rows: list[tuple]) -> str:

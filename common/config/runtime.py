@@ -101,8 +101,7 @@ class RunConfig(Section):
     deterministic: bool = True
     """Ask torch for deterministic algorithms (slower on GPU)."""
     schedule: Literal["concurrent", "lockstep"] = "concurrent"
-    """Tracking and mapping: concurrent (mapping on its own thread, tracking never waits for
-    it) or lockstep (mapping inline after the frame; with deterministic, repeats bit for bit)."""
+    """concurrent: mapping on a thread of its own; lockstep: inline, repeats bit for bit."""
 
     @field_validator("device")
     @classmethod
