@@ -5,7 +5,7 @@
    default ``runs/data``; the seed is ``--scene-seed``); a folder with its ``scene.json`` is
    complete and reused.
 2. ``python -m cpslam.server.cli`` listens on ``tcp/127.0.0.1:PORT`` (a free port unless
-   ``--port``); once its liveliness token is seen, one ``python -m cpslam.agent.cli`` per agent
+   ``--port``); once its liveliness token is seen, one ``python -m cpslam.agent_cli`` per agent
    streams ``--num-frames`` evenly spaced frames of its walk. Each child runs in its own process
    group with stdout and stderr in ``RUN/logs/<name>.log``.
 3. Progress: the server's status query (frames, keyframes, groups, loops) once a second.
@@ -240,7 +240,7 @@ def _run(sup: Supervisor, endpoint: str, common: list[str], seqs: list[Path],
         presence = ServerPresence(bus, SESSION)
         _wait(lambda: presence.wait(1.0) or None, "the server to come up", sup, deadline)
         for i, seq in enumerate(seqs):
-            sup.start(f"agent_{i}", [*py, "cpslam.agent.cli", "--seq", str(seq), "--agent-id",
+            sup.start(f"agent_{i}", [*py, "cpslam.agent_cli", "--seq", str(seq), "--agent-id",
                                      str(i), "--connect", endpoint, "--no-progress",
                                      "--frames", info["frame_slice"], *common])
         names = [f"agent_{i}" for i in range(len(seqs))]

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from cpslam.agent.cli import app as agent_app
+from cpslam.agent_cli import app as agent_app
 from cpslam.cli import app as cpslam_app
 from cpslam.common.trajectory import read_tum
 from cpslam.demo import free_port
@@ -194,7 +194,7 @@ def test_bad_inputs_exit_2_with_a_message(room: Path, tmp_path: Path) -> None:
 def test_ctrl_c_saves_what_exists(room: Path, tmp_path: Path, loops: list[str]) -> None:
     run = tmp_path / "run"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "cpslam.agent.cli", "--seq", str(room), "--standalone", *loops,
+        [sys.executable, "-m", "cpslam.agent_cli", "--seq", str(room), "--standalone", *loops,
          "--preset", "tiny", "--no-progress", "--out", str(run)],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
     )

@@ -62,7 +62,7 @@ def server_args(endpoint: str, session: str, out: Path, *extra: str) -> list[str
 
 def agent_args(seq: Path, agent_id: str, endpoint: str, session: str, out: Path,
                *extra: str) -> list[str]:
-    return ["-m", "cpslam.agent.cli", "--seq", str(seq), "--agent-id", agent_id,
+    return ["-m", "cpslam.agent_cli", "--seq", str(seq), "--agent-id", agent_id,
             "--connect", endpoint, "--session", session, "--preset", "tiny", "--out", str(out),
             "--no-progress", *extra]
 

@@ -104,7 +104,7 @@ def test_sigint_while_waiting_for_the_server_exits_130(tmp_path: Path) -> None:
 
     seq = scene_data(tmp_path, "room", 1, 3, 16, 12, seed=0, show_progress=False)[0]
     proc = subprocess.Popen(
-        [sys.executable, "-m", "cpslam.agent.cli", "--seq", str(seq), "--preset", "tiny",
+        [sys.executable, "-m", "cpslam.agent_cli", "--seq", str(seq), "--preset", "tiny",
          "--connect", f"tcp/127.0.0.1:{free_port()}", "--wait-timeout", "120",
          "--no-progress", "--out", str(tmp_path / "run")],
         env={**os.environ, "CPSLAM_TRANSPORT__OPEN_TIMEOUT_S": str(OPEN_ATTEMPT_S)},

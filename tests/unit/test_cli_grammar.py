@@ -20,7 +20,7 @@ runner = CliRunner()
 
 
 def _scripts() -> dict[str, typer.Typer]:
-    from cpslam.agent.cli import app as agent_app
+    from cpslam.agent_cli import app as agent_app
     from cpslam.cli import app
     from cpslam.server.cli import app as server_app
 

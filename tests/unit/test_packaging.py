@@ -65,7 +65,7 @@ def test_cli_help_and_version() -> None:
 
 
 def _scripts():
-    from cpslam.agent.cli import app as agent_app
+    from cpslam.agent_cli import app as agent_app
     from cpslam.cli import app
     from cpslam.server.cli import app as server_app
 

@@ -1,4 +1,8 @@
-"""`cpslam-agent`: run one agent on one RGB-D sequence."""
+"""`cpslam-agent`: run one agent on one RGB-D sequence.
+
+It lives at the top of the package, beside `cpslam run`, because a standalone run with loop
+closure drives the server's back end in the same process (`cpslam.run.run_collab`); the agent
+package itself never imports the server."""
 
 from __future__ import annotations
 
