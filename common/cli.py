@@ -12,7 +12,8 @@ import contextlib
 import logging
 import signal
 import threading
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator
 from enum import IntEnum
 from pathlib import Path
 from typing import Annotated, Any, NoReturn
@@ -21,7 +22,7 @@ import typer
 from typer.core import TyperCommand, TyperGroup
 
 __all__ = ["App", "ExitCode", "JsonOpt", "OverwriteOpt", "check_output", "fail",
-           "out_option", "stop_on_signals", "verbosity"]
+           "out_option", "signal_handler", "stop_on_signals", "verbosity"]
 
 logger = logging.getLogger(__name__)
 
@@ -67,20 +68,39 @@ def stop_on_signals() -> Iterator[threading.Event]:
     writes what it did); a second signal exits at once with `ExitCode.INTERRUPTED`. The
     previous handlers come back on exit. Main thread only (Python's rule for handlers)."""
     stop = threading.Event()
-
-    def handler(signum: int, _frame: object) -> None:
-        if stop.is_set():
-            raise SystemExit(ExitCode.INTERRUPTED)
-        logger.warning("%s: stopping after this frame (again to exit at once)",
-                       signal.Signals(signum).name)
-        stop.set()
-
+    handler = signal_handler(stop, window_s=0.0, action="stopping after this frame")
     previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         yield stop
     finally:
         for sig, old in previous.items():
             signal.signal(sig, old)
+
+
+def signal_handler(stop: threading.Event, *, window_s: float, action: str,
+                   clock: Callable[[], float] = time.monotonic
+                   ) -> Callable[[int, object], None]:
+    """A handler whose first signal sets `stop` (logging `action`); the same signal within
+    `window_s` of it is ignored (one request delivered twice); any other later signal exits
+    with `ExitCode.INTERRUPTED`."""
+    first: list[tuple[int, float]] = []
+
+    def handler(signum: int, _frame: object) -> None:
+        name, now = signal.Signals(signum).name, clock()
+        if not first:
+            first.append((signum, now))
+            logger.info("%s: %s (send it again to exit at once)", name, action)
+            stop.set()
+            return
+        signum0, t0 = first[0]
+        if signum == signum0 and now - t0 < window_s:
+            logger.info("%s again %.2f s after the first: the same request (delivered to the "
+                        "process group too?); still %s", name, now - t0, action)
+            return
+        logger.warning("second %s: exiting at once", name)
+        raise SystemExit(ExitCode.INTERRUPTED)
+
+    return handler
 
 
 def check_output(path: Path, overwrite: bool) -> None:

@@ -15,14 +15,12 @@ from __future__ import annotations
 import logging
 import signal
 import threading
-import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
-from cpslam.common.cli import App, ExitCode, fail, out_option
+from cpslam.common.cli import App, ExitCode, fail, out_option, signal_handler
 from cpslam.common.config.cli import (
     ConfigOpt,
     ConnectOpt,
@@ -137,33 +135,9 @@ def server(
 
 def _on_signals(stop: threading.Event) -> None:
     """First SIGINT/SIGTERM: finish cleanly (final pose graph, outputs); second: exit now."""
-    handler = signal_handler(stop)
+    handler = signal_handler(stop, window_s=REPEAT_WINDOW_S, action="finalising")
     signal.signal(signal.SIGINT, handler)
     signal.signal(signal.SIGTERM, handler)
-
-
-def signal_handler(stop: threading.Event, clock: Callable[[], float] = time.monotonic,
-                   window_s: float = REPEAT_WINDOW_S) -> Callable[[int, object], None]:
-    """The handler: the first signal sets `stop`; the same signal within `window_s` of it is
-    ignored (one request delivered twice); any other later signal exits 130."""
-    first: list[tuple[int, float]] = []
-
-    def handler(signum: int, _frame: object) -> None:
-        name, now = signal.Signals(signum).name, clock()
-        if not first:
-            first.append((signum, now))
-            logger.info("%s: finalising (send it again to exit at once)", name)
-            stop.set()
-            return
-        signum0, t0 = first[0]
-        if signum == signum0 and now - t0 < window_s:
-            logger.info("%s again %.2f s after the first: the same request (delivered to the "
-                        "process group too?); still finalising", name, now - t0)
-            return
-        logger.warning("second %s: exiting without finalising", name)
-        raise SystemExit(ExitCode.INTERRUPTED)
-
-    return handler
 
 
 def main() -> None:

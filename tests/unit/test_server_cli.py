@@ -10,12 +10,13 @@ import pytest
 from fake_clock import FakeClock
 from typer.testing import CliRunner
 
-from cpslam.server.cli import REPEAT_WINDOW_S, app, signal_handler
+from cpslam.common.cli import signal_handler
+from cpslam.server.cli import REPEAT_WINDOW_S, app
 
 
 def test_the_same_signal_twice_at_once_is_one_request(fake_clock: FakeClock) -> None:
     stop, clock = threading.Event(), fake_clock
-    handler = signal_handler(stop, clock)
+    handler = signal_handler(stop, clock=clock, window_s=REPEAT_WINDOW_S, action="finalising")
     handler(signal.SIGTERM, None)
     assert stop.is_set()
     clock.advance(0.05)
@@ -28,7 +29,7 @@ def test_the_same_signal_twice_at_once_is_one_request(fake_clock: FakeClock) -> 
 
 def test_a_different_second_signal_exits_at_once(fake_clock: FakeClock) -> None:
     stop, clock = threading.Event(), fake_clock
-    handler = signal_handler(stop, clock)
+    handler = signal_handler(stop, clock=clock, window_s=REPEAT_WINDOW_S, action="finalising")
     handler(signal.SIGTERM, None)
     clock.advance(0.1)
     with pytest.raises(SystemExit) as exit_info:
