@@ -91,7 +91,7 @@ def run_odometry(cfg, seq, factor: float, device: str, real: bool,
 
     intrinsics = seq.intrinsics.scaled(factor) if factor != 1.0 else seq.intrinsics
     odometry = Odometry.from_config(cfg, intrinsics, device)
-    track, map_calls, step_times, first_map, first_step = [], [], [], 0.0, None
+    results = []
     start, start_cpu = time.perf_counter(), time.process_time()
     done = 0
     for i in range(len(seq)):
@@ -101,21 +101,9 @@ def run_odometry(cfg, seq, factor: float, device: str, real: bool,
         frame = seq[i]
         if factor != 1.0:
             frame.rgb, frame.depth = resize_rgbd(frame.rgb, frame.depth, factor)
-        result = odometry.step(frame)
+        results.append(odometry.step(frame))
         if device.startswith("cuda"):
             torch.cuda.synchronize(device)
-        if i > 0:
-            track.append(result.track_time_s)
-        if not result.map_steps:
-            continue
-        # Calls finish in order: the first reported is frame 0's (reported with frame 0 in
-        # lock-step, with a later frame when concurrent).
-        if first_step is None:
-            first_map = result.map_time_s
-            first_step = result.map_optimise_time_s / result.map_steps
-        else:
-            map_calls.append(result.map_time_s)
-            step_times.append(result.map_optimise_time_s / result.map_steps)
     odometry.close()  # the mapping calls still running belong to the run
     total, total_cpu = time.perf_counter() - start, time.process_time() - start_cpu
     stamps, poses = odometry.trajectory()
@@ -127,15 +115,9 @@ def run_odometry(cfg, seq, factor: float, device: str, real: bool,
         out["accuracy_error"] = str(error)
     out.update({
         "events": odometry.tracking_events(),
-        "s_per_frame": round(total / done, 3),
-        "s_per_frame_after_first": round((total - first_map) / max(done - 1, 1), 3),
+        **timings(results, total),
         # Process CPU time (every thread): comparable between runs that share the cores.
         "cpu_s_per_frame": round(total_cpu / done, 3),
-        "tracking_s_per_frame": round(float(np.mean(track)), 3) if track else None,
-        "mapping_s_per_call": round(float(np.mean(map_calls)), 3) if map_calls else None,
-        "mapping_s_per_iter": round(float(np.mean(step_times)), 4) if step_times else None,
-        "first_mapping_s": round(first_map, 2),
-        "first_mapping_s_per_iter": round(first_step, 4) if first_step is not None else None,
         "points": len(odometry.point_map),
         "keyframes": len(odometry.keyframes),
         "schedule": odometry.schedule_stats(),
@@ -156,11 +138,6 @@ def run_with_loops(cfg, seq, factor: float, device: str, real: bool) -> dict:
     with tempfile.TemporaryDirectory(prefix="bench-loops-") as tmp:
         result = run_collab(cfg, [seq], Path(tmp), device, show_progress=False)
     node, final = result.nodes["0"], result.final.agents[0]
-    frames = node.results
-    # Calls finish in order: the first reported is frame 0's (later when concurrent).
-    reported = [r for r in frames if r.map_steps]
-    first_map = reported[0].map_time_s if reported else 0.0
-    mapped = reported[1:]
     loops = result.final.metrics.get("loops", {})
     out = {"frames": len(seq), "resolution": f"{node.intrinsics.width}x{node.intrinsics.height}"}
     out.update(accuracy(seq, final.stamps, final.T_group_cam, real))
@@ -173,20 +150,38 @@ def run_with_loops(cfg, seq, factor: float, device: str, real: bool) -> dict:
         "loops_found": int(loops.get("found", 0)),
         "loops_accepted": int(loops.get("accepted", 0)),
         "events": node.odometry.tracking_events(),
-        "s_per_frame": round(result.wall_s / len(seq), 3),
-        "s_per_frame_after_first": round((result.wall_s - first_map)
-                                         / max(len(seq) - 1, 1), 3),
-        "tracking_s_per_frame": (round(float(np.mean([r.track_time_s for r in frames[1:]])), 3)
-                                 if len(frames) > 1 else None),
-        "mapping_s_per_call": (round(float(np.mean([r.map_time_s for r in mapped])), 3)
-                               if mapped else None),
-        "mapping_s_per_iter": (round(float(np.mean([r.map_optimise_time_s / r.map_steps
-                                                     for r in mapped])), 4) if mapped else None),
-        "first_mapping_s": round(first_map, 2),
+        **timings(node.results, result.wall_s),
         "points": len(node.odometry.point_map),
         "keyframes": len(node.odometry.keyframes),
     })
     return out
+
+
+def timings(results: list, wall_s: float) -> dict:
+    """Seconds per frame (end to end, and after the first frame's mapping call), tracking per
+    frame after the first, per mapping call and step, and the first call, from the frames'
+    results (`FrameResult`) and the run's wall time."""
+    # Calls finish in order: the first reported is frame 0's (reported with frame 0 in
+    # lock-step, with a later frame when concurrent).
+    reported = [r for r in results if r.map_steps]
+    first = reported[0] if reported else None
+    mapped = reported[1:]
+    first_map = first.map_time_s if first is not None else 0.0
+    n = max(len(results), 1)
+
+    def mean(values: list[float], digits: int) -> float | None:
+        return round(float(np.mean(values)), digits) if values else None
+
+    return {
+        "s_per_frame": round(wall_s / n, 3),
+        "s_per_frame_after_first": round((wall_s - first_map) / max(n - 1, 1), 3),
+        "tracking_s_per_frame": mean([r.track_time_s for r in results[1:]], 3),
+        "mapping_s_per_call": mean([r.map_time_s for r in mapped], 3),
+        "mapping_s_per_iter": mean([r.map_optimise_time_s / r.map_steps for r in mapped], 4),
+        "first_mapping_s": round(first_map, 2),
+        "first_mapping_s_per_iter": (round(first.map_optimise_time_s / first.map_steps, 4)
+                                     if first is not None else None),
+    }
 
 
 def accuracy(seq, stamps: np.ndarray, poses: np.ndarray, real: bool,
