@@ -22,6 +22,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -177,6 +178,8 @@ class Mapper:
         n_pixels: int,
         generator: torch.Generator,
         pose_lr: float = 0.0,
+        checkpoint_every: int = 0,
+        checkpoint: Callable[[], None] | None = None,
     ) -> MapResult:
         """Optimise features (of the points seen by `views`) and decoders for `iters` steps
         on `n_pixels` pixels per step. Returns the first and last step's loss.
@@ -184,7 +187,11 @@ class Mapper:
         pose_lr > 0 also optimises the pose of views[0] (the current frame) as
         T_world_cam @ exp(xi), xi an se(3) increment in its camera frame, by Adam at this
         rate; the map points stay where they are while it moves, and the refined pose is
-        returned in the result (the view itself is left unchanged)."""
+        returned in the result (the view itself is left unchanged).
+
+        checkpoint_every > 0: every this many steps (not after the last) the features so far
+        are written into the map and `checkpoint()` is called, so another thread can publish
+        a copy mid-way; the optimisation itself goes on unchanged."""
         start = time.perf_counter()
         refine = pose_lr > 0 and len(views) > 0 and len(views[0].valid) > 0
         views = [view for view in views if len(view.valid)]
@@ -222,6 +229,10 @@ class Mapper:
             last = float(loss.detach())
             if it == 0:
                 first = last
+            if checkpoint is not None and checkpoint_every > 0 and it + 1 < iters \
+                    and (it + 1) % checkpoint_every == 0:
+                point_map.set_features(rows, active)
+                checkpoint()
         point_map.set_features(rows, active)
         T_refined = None
         if refine:

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -130,6 +131,7 @@ class Odometry:
         schedule: str = "lockstep",
         max_pending_keyframes: int = 2,
         mapping_threads: int | None = None,
+        first_publish_every: int = 0,
     ) -> None:
         if init not in MOTION_MODELS:
             raise ValueError(f"Odometry: init must be zero_motion or constant_velocity, "
@@ -148,6 +150,7 @@ class Odometry:
         self.iters_first, self.iters, self.iters_after_fusion = iters_first, iters, \
             iters_after_fusion
         self.n_pixels_first, self.n_pixels = n_pixels_first, n_pixels
+        self.first_publish_every = first_publish_every
         self.covisible_keyframes = covisible_keyframes
         self.pose_lr = pose_lr
         self.init = init
@@ -194,6 +197,7 @@ class Odometry:
             else None,
             schedule=cfg.run.schedule, max_pending_keyframes=mp.max_pending_keyframes,
             mapping_threads=_split_threads() if cfg.run.schedule == "concurrent" else None,
+            first_publish_every=mp.first_publish_every,
         )
 
     # ---------------------------------------------------------------------------- per frame
@@ -216,7 +220,7 @@ class Odometry:
             finished += self._drain_worker()
             refit_steps, refit_time = self._refit(generator)
         if count > 0 and len(self.maps.published.point_map) == 0:
-            finished += self._drain_worker()  # nothing to track against before the first call
+            self.maps.wait_for_map()  # nothing to track against before the first publish
         state = self.maps.published
 
         t0 = time.perf_counter()
@@ -412,6 +416,7 @@ class Odometry:
             return job
         if count == 0:
             job.iters, job.n_pixels = self.iters_first, self.n_pixels_first
+            job.publish_every = self.first_publish_every
         else:
             job.iters = self.iters_after_fusion if self.fused else self.iters
             job.n_pixels = self.n_pixels
@@ -426,8 +431,10 @@ class Odometry:
             device="cpu").manual_seed((self.seed * 1_000_003 + current.index) * 2)
         return job
 
-    def _run_job(self, job: MapJob, state: MapState) -> MapOutcome:
-        return run_map_job(job, state, self.mapper, self.cnn, self.intrinsics, self.agent_id)
+    def _run_job(self, job: MapJob, state: MapState,
+                 checkpoint: Callable[[], None] | None) -> MapOutcome:
+        return run_map_job(job, state, self.mapper, self.cnn, self.intrinsics, self.agent_id,
+                           checkpoint)
 
     def _recorded(self, outcomes: list[MapOutcome]) -> list[MapOutcome]:
         """Record finished mapping calls (the points they anchored, the refined poses)."""

@@ -15,6 +15,9 @@ Back-pressure (the worker falls behind): at most one frame that is only a mappin
 for the worker; a newer one replaces it and the older is skipped (counted and logged: the
 newer frame sees the same surroundings, one step further). A keyframe's job is never dropped;
 when `max_pending_keyframes` of them already wait, the tracker waits for room (counted too).
+
+A job with `publish_every` > 0 (the first mapping call) also publishes a copy every that many
+steps, so tracking starts from the map as it is then instead of waiting for the whole call.
 """
 
 from __future__ import annotations
@@ -79,6 +82,7 @@ class MapJob:
     n_pixels: int = 0
     pose_lr: float = 0.0
     generator: torch.Generator | None = None
+    publish_every: int = 0  # concurrent: also publish every this many steps (0: at the end)
 
     @property
     def droppable(self) -> bool:
@@ -102,8 +106,10 @@ class MapOutcome:
 
 
 def run_map_job(job: MapJob, state: MapState, mapper: Mapper, cnn: FeatureCNN,
-                intrinsics: Intrinsics, agent_id: int) -> MapOutcome:
-    """Register the keyframe, add the frame's unexplained points, optimise (in this order)."""
+                intrinsics: Intrinsics, agent_id: int,
+                checkpoint: Callable[[], None] | None = None) -> MapOutcome:
+    """Register the keyframe, add the frame's unexplained points, optimise (in this order);
+    `checkpoint` publishes the state mid-way, every `job.publish_every` steps."""
     start = time.perf_counter()
     pm, decoders = state.point_map, state.decoders
     if job.register_kf is not None:
@@ -115,7 +121,8 @@ def run_map_job(job: MapJob, state: MapState, mapper: Mapper, cnn: FeatureCNN,
     ids = mapper.add_points(pm, decoders, cnn, job.rgb, job.depth, intrinsics, job.T_world_cam,
                             job.anchor_kf, job.generator)
     result = mapper.optimise(pm, decoders, job.views, job.iters, job.n_pixels, job.generator,
-                             pose_lr=job.pose_lr)
+                             pose_lr=job.pose_lr, checkpoint_every=job.publish_every,
+                             checkpoint=checkpoint)
     return MapOutcome(job.count, job.index, job.anchor_kf, ids, result.steps, result.seconds,
                       time.perf_counter() - start, result.T_world_cam)
 
@@ -124,7 +131,8 @@ class MappingWorker:
     """Runs `MapJob`s in order on a thread of its own (see the module docstring).
 
     Args:
-        run: runs one job on the working state (`run_map_job` bound to it).
+        run: runs one job on the working state (`run_map_job` bound to it); its second
+            argument publishes a snapshot mid-way.
         snapshot: a copy of the working state (taken on this thread after each job that
             optimised).
         publish: makes a snapshot the tracker's (once its copies are complete on CUDA).
@@ -133,7 +141,8 @@ class MappingWorker:
         device: the map's device; on CUDA the worker uses a stream of its own.
     """
 
-    def __init__(self, run: Callable[[MapJob], MapOutcome], snapshot: Callable[[], MapState],
+    def __init__(self, run: Callable[[MapJob, Callable[[], None]], MapOutcome],
+                 snapshot: Callable[[], MapState],
                  publish: Callable[[MapState], None], *,
                  max_pending_keyframes: int, threads: int | None,
                  device: torch.device) -> None:
@@ -143,13 +152,14 @@ class MappingWorker:
         self._run, self._snapshot, self._publish = run, snapshot, publish
         self.max_pending_keyframes = max_pending_keyframes
         self.threads, self.device = threads, device
-        self.counts = {"jobs": 0, "skipped": 0, "waits": 0}
+        self.counts = {"jobs": 0, "skipped": 0, "waits": 0, "checkpoints": 0}
         self.wait_s = 0.0
         self._jobs: deque[MapJob] = deque()
         self._done: list[MapOutcome] = []
         self._busy = False
         self._stop = False
         self._error: BaseException | None = None
+        self._stream: torch.cuda.Stream | None = None
         self._cond = threading.Condition()
         self._thread = threading.Thread(target=self._loop, name="cpslam-mapping", daemon=True)
         self._thread.start()
@@ -195,6 +205,14 @@ class MappingWorker:
             done, self._done = self._done, []
             return done
 
+    def wait_published(self, ready: Callable[[], bool]) -> None:
+        """Wait until `ready()` holds, re-checked after every publish, or nothing is left to
+        run (the caller then sees what the last job left)."""
+        with self._cond:
+            while not ready() and (self._jobs or self._busy) and self._error is None:
+                self._cond.wait()
+            self._raise_error()
+
     @property
     def idle(self) -> bool:
         """No job waiting or running."""
@@ -215,6 +233,7 @@ class MappingWorker:
         if self.threads is not None:
             torch.set_num_threads(self.threads)  # this thread's own OpenMP team size
         stream = torch.cuda.Stream(self.device) if self.device.type == "cuda" else None
+        self._stream = stream
         while True:
             with self._cond:
                 while not self._jobs and not self._stop:
@@ -226,7 +245,7 @@ class MappingWorker:
                 self._cond.notify_all()  # a tracker waiting for room may go on
             try:
                 with torch.cuda.stream(stream) if stream is not None else nullcontext():
-                    outcome = self._run(job)
+                    outcome = self._run(job, self._checkpoint)
                     snapshot = self._snapshot() if job.optimise else None
                 if stream is not None:
                     stream.synchronize()
@@ -245,6 +264,16 @@ class MappingWorker:
                 self._busy = False
                 self._cond.notify_all()
 
+    def _checkpoint(self) -> None:
+        """Publish a copy of the working state in the middle of a job (worker thread)."""
+        snapshot = self._snapshot()
+        if self._stream is not None:
+            self._stream.synchronize()
+        self._publish(snapshot)
+        with self._cond:
+            self.counts["checkpoints"] += 1
+            self._cond.notify_all()
+
     def _raise_error(self) -> None:
         if self._error is not None:
             raise RuntimeError(f"the mapping thread failed: {self._error!r}") from self._error
@@ -256,12 +285,14 @@ class MapSchedule:
 
     Args:
         state: the map and decoders to start from.
-        run: runs one job on a state (`run_map_job` with the odometry's mapper bound).
+        run: runs one job on a state (`run_map_job` with the odometry's mapper bound); its
+            third argument publishes mid-way (None in lock-step, where nobody reads meanwhile).
         schedule: "concurrent" or "lockstep".
         max_pending_keyframes, threads: the `MappingWorker`'s (concurrent only).
     """
 
-    def __init__(self, state: MapState, run: Callable[[MapJob, MapState], MapOutcome], *,
+    def __init__(self, state: MapState,
+                 run: Callable[[MapJob, MapState, Callable[[], None] | None], MapOutcome], *,
                  schedule: str, max_pending_keyframes: int, threads: int | None) -> None:
         if schedule not in SCHEDULES:
             raise ValueError(f"schedule must be one of {SCHEDULES}, got {schedule!r}")
@@ -272,7 +303,8 @@ class MapSchedule:
         self._run = run
         self._editing = 0
         self._worker = None if schedule == "lockstep" else MappingWorker(
-            lambda job: run(job, self.work), lambda: self.work.copy(), self._publish,
+            lambda job, checkpoint: run(job, self.work, checkpoint), lambda: self.work.copy(),
+            self._publish,
             max_pending_keyframes=max_pending_keyframes, threads=threads,
             device=state.point_map.device)
 
@@ -288,7 +320,7 @@ class MapSchedule:
     def submit(self, job: MapJob) -> list[MapOutcome]:
         """Lock-step: run the job now and return its outcome; concurrent: hand it over."""
         if self._worker is None:
-            return [self._run(job, self.work)]
+            return [self._run(job, self.work, None)]
         self._worker.submit(job)
         return []
 
@@ -299,6 +331,12 @@ class MapSchedule:
     def drain(self) -> list[MapOutcome]:
         """Wait for every handed-over job; their outcomes and earlier uncollected ones."""
         return self._worker.drain() if self._worker is not None else []
+
+    def wait_for_map(self) -> None:
+        """Wait until the published map has points (the first call's first publish), or
+        until nothing handed over is left to run."""
+        if self._worker is not None:
+            self._worker.wait_published(lambda: len(self.published.point_map) > 0)
 
     @contextmanager
     def editing(self, drained: Callable[[list[MapOutcome]], None]) -> Iterator[MapState]:

@@ -118,11 +118,20 @@ def _odometry(report: dict) -> str:
         which = " without loop closure" if loops else ""
         out.append(f"\nMean over the runs{which}: tracking {timing['tracking_s_per_frame']} s per "
                    f"frame, mapping {timing['mapping_s_per_call']} s per call, "
-                   f"{timing['s_per_frame_after_first']} s per frame after the first "
+                   f"{timing['s_per_frame_after_first']} s per frame after the first"
+                   f"{_first_tracked(runs)} "
                    f"(threads {sorted({r['threads'] for r in runs})}, CPU code paths "
                    f"{sorted({r['capability'] for r in runs})}, preset `{report['preset']}`"
                    f"{', ' + ' '.join(report['overrides']) if report['overrides'] else ''}).")
     return "\n".join(out) + "\n"
+
+
+def _first_tracked(runs: list[dict]) -> str:
+    """", frame 1 tracked after N s" where the runs recorded it."""
+    values = [r["first_tracked_s"] for r in runs if r.get("first_tracked_s") is not None]
+    if len(values) != len(runs):
+        return ""
+    return f", frame 1 tracked after {round(sum(values) / len(values), 1)} s"
 
 
 def _loop_edges(report: dict) -> str:

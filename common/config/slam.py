@@ -236,6 +236,8 @@ class MappingConfig(Section):
     """Adam rate refining a non-keyframe mapping frame's pose with the map (0 = keep tracked)."""
     max_pending_keyframes: PositiveInt = 2
     """Concurrent schedule: keyframes waiting for the mapping thread before tracking waits too."""
+    first_publish_every: NonNegativeInt = 0
+    """Concurrent schedule: publish the first call's map every this many steps (0 = at its end)."""
 
 
 class KeyframesConfig(Section):

@@ -92,6 +92,30 @@ def test_optimise_lowers_loss_and_leaves_unseen_points_alone() -> None:
     assert not torch.equal(after[:-1], before[:-1])
 
 
+def test_checkpoints_publish_mid_way_and_change_nothing() -> None:
+    """Checkpoints write the features so far into the map and call back every few steps;
+    the optimisation ends with the same bits as without them."""
+    rgb, depth = _wall_frame()
+    finals, seen = [], []
+    for every in (0, 7):
+        point_map, decoders, cnn, mapper = _setup()
+        mapper.add_points(point_map, decoders, cnn, rgb, depth, INTR, np.eye(4), 0)
+        start = point_map.features.detach().clone()
+
+        def checkpoint(point_map: NeuralPointMap = point_map) -> None:
+            seen.append(point_map.features.detach().clone())
+
+        mapper.optimise(point_map, decoders, [_view(rgb, depth, np.eye(4))], 30, 200,
+                        torch.Generator().manual_seed(0), checkpoint_every=every,
+                        checkpoint=checkpoint)
+        finals.append((point_map.features.detach().clone(),
+                       [p.detach().clone() for p in decoders.parameters()]))
+    assert len(seen) == 4  # after steps 7, 14, 21, 28 of 30 (none after the last)
+    assert not torch.equal(seen[0], start) and not torch.equal(seen[0], seen[1])
+    assert torch.equal(finals[0][0], finals[1][0])
+    assert all(torch.equal(a, b) for a, b in zip(finals[0][1], finals[1][1], strict=True))
+
+
 def test_keyframe_pose_change_moves_anchored_points() -> None:
     point_map, decoders, cnn, mapper = _setup()
     rgb, depth = _wall_frame()

@@ -16,13 +16,13 @@ from tests.unit.spec_helpers import spec
 N_POINTS = 64
 
 
-def _state() -> MapState:
+def _state(n_points: int = N_POINTS) -> MapState:
     s = spec("tiny")
     point_map = s.point_map(0, "cpu")
     point_map.set_keyframe_poses(0, np.eye(4), 0)
-    xyz = torch.rand(N_POINTS, 3)
-    point_map.add_points(xyz, 0, torch.zeros(N_POINTS, s.feature_dim),
-                         torch.zeros(N_POINTS, 3, dtype=torch.uint8))
+    if n_points:
+        point_map.add_points(torch.rand(n_points, 3), 0, torch.zeros(n_points, s.feature_dim),
+                             torch.zeros(n_points, 3, dtype=torch.uint8))
     return MapState(point_map, s.decoders(0))
 
 
@@ -47,7 +47,7 @@ def test_tracking_never_reads_a_half_written_map() -> None:
     optimiser does; a reader hammering the published state must see one value throughout."""
     jobs = 60
 
-    def run(job: MapJob, state: MapState) -> MapOutcome:
+    def run(job: MapJob, state: MapState, checkpoint: object) -> MapOutcome:
         value = float(job.count + 1)
         with torch.no_grad():
             features = state.point_map.features
@@ -92,7 +92,7 @@ def _blocking_schedule(max_pending_keyframes: int) -> tuple[MapSchedule, threadi
                                                              list[int]]:
     release, ran = threading.Event(), []
 
-    def run(job: MapJob, state: MapState) -> MapOutcome:
+    def run(job: MapJob, state: MapState, checkpoint: object) -> MapOutcome:
         release.wait()
         ran.append(job.count)
         return _outcome(job)
@@ -144,7 +144,7 @@ def test_tracking_waits_when_keyframes_pile_up() -> None:
 
 
 def test_a_failed_mapping_call_reaches_the_tracker() -> None:
-    def run(job: MapJob, state: MapState) -> MapOutcome:
+    def run(job: MapJob, state: MapState, checkpoint: object) -> MapOutcome:
         raise ValueError("boom")
 
     maps = MapSchedule(_state(), run, schedule="concurrent", max_pending_keyframes=2,
@@ -160,7 +160,7 @@ def test_a_failed_mapping_call_reaches_the_tracker() -> None:
 def test_lockstep_runs_inline_on_the_one_state() -> None:
     calls = []
 
-    def run(job: MapJob, state: MapState) -> MapOutcome:
+    def run(job: MapJob, state: MapState, checkpoint: object) -> MapOutcome:
         calls.append(state)
         return _outcome(job, steps=3)
 
@@ -176,7 +176,7 @@ def test_lockstep_runs_inline_on_the_one_state() -> None:
 def test_editing_drains_then_publishes_once() -> None:
     state = _state()
 
-    def run(job: MapJob, s: MapState) -> MapOutcome:
+    def run(job: MapJob, s: MapState, checkpoint: object) -> MapOutcome:
         with torch.no_grad():
             s.point_map.features.fill_(1.0)
         return _outcome(job)
@@ -199,7 +199,51 @@ def test_editing_drains_then_publishes_once() -> None:
         maps.close()
 
 
+def test_a_checkpoint_lets_tracking_start_before_the_call_ends() -> None:
+    """The first call publishes mid-way: `wait_for_map` returns on the first publish while
+    the call still runs, and the tracker sees the map as it was then."""
+    state = _state(n_points=0)  # the first call starts from an empty map
+    release = threading.Event()
+    checkpoints: list[bool] = []
+
+    def run(job: MapJob, s: MapState, checkpoint) -> MapOutcome:
+        s.point_map.add_points(torch.rand(N_POINTS, 3), 0,
+                               torch.ones(N_POINTS, s.point_map.feature_dim),
+                               torch.zeros(N_POINTS, 3, dtype=torch.uint8))
+        checkpoints.append(checkpoint is not None)
+        checkpoint()
+        release.wait()
+        with torch.no_grad():
+            s.point_map.features.fill_(2.0)
+        return _outcome(job)
+
+    maps = MapSchedule(state, run, schedule="concurrent", max_pending_keyframes=2, threads=1)
+    try:
+        assert len(maps.published.point_map) == 0
+        maps.submit(_job(0, keyframe=True))
+        maps.wait_for_map()  # would hang here if it waited for the whole call
+        # The call cannot have ended: it waits for `release`, set only below.
+        assert len(maps.published.point_map) == len(maps.work.point_map) > 0
+        assert bool((maps.published.point_map.features == 1.0).all())
+        release.set()
+        maps.drain()
+        assert bool((maps.published.point_map.features == 2.0).all())
+        assert maps.stats()["checkpoints"] == 1 and checkpoints == [True]
+    finally:
+        release.set()
+        maps.close()
+
+
+def test_wait_for_map_returns_when_nothing_is_left_to_run() -> None:
+    maps = MapSchedule(_state(n_points=0), lambda job, s, checkpoint: _outcome(job),
+                       schedule="concurrent", max_pending_keyframes=2, threads=1)
+    try:
+        maps.wait_for_map()  # no job and an empty map: returns, nothing to wait for
+    finally:
+        maps.close()
+
+
 def test_unknown_schedule_is_refused() -> None:
     with pytest.raises(ValueError, match="schedule must be one of"):
-        MapSchedule(_state(), lambda job, s: _outcome(job), schedule="async",
+        MapSchedule(_state(), lambda job, s, checkpoint: _outcome(job), schedule="async",
                     max_pending_keyframes=1, threads=None)
