@@ -28,7 +28,7 @@ def view(
         "--web", help="Serve Rerun's web viewer from this process (headless machines); "
         "runs until Ctrl-C.")] = False,
     web_port: Annotated[int, typer.Option("--web-port", help="Port of the web viewer.")] = 9090,
-    gt: Annotated[list[str] | None, typer.Option(
+    gt: Annotated[list[Path] | None, typer.Option(
         "--gt", help="Ground truth of an agent: AGENT=PATH, or PATH for the agents in id "
         "order (sequence folder or TUM file; repeatable). Default: the demo's record.")] = None,
     thumbnails: Annotated[bool, typer.Option(
@@ -124,7 +124,7 @@ def _live(connect: list[str] | None, session: str | None, save: Path | None, web
     typer.echo(f"observed {observer.messages} messages from {len(observer.agents)} agents")
 
 
-def _ground_truth(run: Path, items: list[str]) -> dict[str, Path] | None:
+def _ground_truth(run: Path, items: list[Path]) -> dict[str, Path] | None:
     """--gt items as agent id -> path (bare paths in the run's agent order); None: default."""
     if not items:
         return None
@@ -133,11 +133,11 @@ def _ground_truth(run: Path, items: list[str]) -> dict[str, Path] | None:
     ids = agent_ids(run)
     out, bare = {}, []
     for item in items:
-        agent, sep, path = item.partition("=")
-        if sep:
+        agent, sep, path = str(item).partition("=")
+        if sep and agent in ids:
             out[agent] = Path(path)
         else:
-            bare.append(Path(item))
+            bare.append(item)
     if len(bare) > len(ids):
         fail(f"--gt: {len(bare)} paths for the {len(ids)} agents of {run}")
     out.update(zip(ids, bare, strict=False))
