@@ -134,6 +134,8 @@ def test_observer_follows_a_session_without_publishing(tmp_path: Path) -> None:
     assert observer.poll(final=True) == summary
     observer.close()
     scene.close()
+    for bus in (agent, server, viewer):
+        bus.close()
 
     assert not published
     data = read_rrd(rrd)

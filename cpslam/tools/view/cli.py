@@ -36,6 +36,8 @@ def view(
         "from its agent.")] = True,
     duration: Annotated[float | None, typer.Option(
         "--duration", min=0.1, help="Live: stop after this many seconds (else Ctrl-C).")] = None,
+    timeout: Annotated[float, typer.Option(
+        "--timeout", min=0.1, help="Live: seconds to wait for the server.")] = 60.0,
     overwrite: OverwriteOpt = False,
 ) -> None:
     """Replay a run folder, or watch a running session, in Rerun (needs rerun-sdk, the viz extra).
@@ -74,7 +76,7 @@ def view(
             if web:
                 _wait_for_ctrl_c()
         else:
-            _live(connect, session, save, web, web_port, thumbnails, duration)
+            _live(connect, session, save, web, web_port, thumbnails, duration, timeout)
     except RerunMissingError as err:
         fail(str(err), ExitCode.ERROR)
     if save is not None:
@@ -97,7 +99,7 @@ def save_replay(run: Path, save: Path | None, web: bool = False, web_port: int =
 
 
 def _live(connect: list[str] | None, session: str | None, save: Path | None, web: bool,
-          web_port: int, thumbnails: bool, duration: float | None) -> None:
+          web_port: int, thumbnails: bool, duration: float | None, timeout: float) -> None:
     import threading
 
     from cpslam.common.cli import stop_on_signals
@@ -105,7 +107,7 @@ def _live(connect: list[str] | None, session: str | None, save: Path | None, web
     from cpslam.tools.view.live import Observer
     from cpslam.tools.view.sink import Scene, open_recording
 
-    cfg, bus = _client(connect, session, 10.0)
+    cfg, bus = _client(connect, session, timeout)
     s = cfg.transport.session
     scene = Scene(open_recording(f"live-{s}", save=save, web=web, web_port=web_port))
     with bus, stop_on_signals() as stop:

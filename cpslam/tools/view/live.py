@@ -250,9 +250,11 @@ class Observer:
         self.scene.scalar("groups", len(summary.get("groups", {})))
 
     def _log_loops(self, recent: list) -> None:
-        """Every reported loop pair whose keyframes are known, as segments (re-logged whole,
-        since corrections move their ends); new ones also on the event log."""
+        """Every reported loop pair whose keyframes are known, as segments (re-logged whole
+        when a loop is new or an agent's poses changed, since corrections move their ends);
+        new ones also on the event log."""
         starts, ends, accepted, labels = [], [], [], []
+        changed = any(a.dirty for a in self.agents.values())
         for lp in recent if isinstance(recent, list) else []:
             try:
                 a, b = self.agents[str(lp["agent_a"])], self.agents[str(lp["agent_b"])]
@@ -265,10 +267,11 @@ class Observer:
             labels.append(f"{float(lp.get('score', 0.0)):.2f}")
             if lp.get("loop_id") not in self.loops_seen:
                 self.loops_seen.add(lp.get("loop_id"))
+                changed = True
                 verdict = "accepted" if lp.get("accepted") else "rejected"
                 self.scene.event("loops", f"loop {lp['agent_a']}:{lp['kf_a']} - "
                                  f"{lp['agent_b']}:{lp['kf_b']} {verdict}, score {labels[-1]}")
-        if starts:
+        if starts and changed:
             self.scene.loops(np.array(starts), np.array(ends), np.array(accepted), labels,
                              static=False)
 
