@@ -132,6 +132,28 @@ def test_replay_draws_loops_by_verdict_and_events_on_the_timeline(run_folder, tm
     assert times == sorted(times)
 
 
+@pytest.mark.slow
+def test_replay_of_an_agent_alone_uses_its_own_folder(run_folder, tmp_path):
+    """What `cpslam-agent --standalone --no-loops` leaves: agent_<id>/ and no server outputs."""
+    pytest.importorskip("rerun")
+    import torch
+
+    from cpslam.tools.view.cli import save_replay
+
+    run = tmp_path / "alone"
+    shutil.copytree(run_folder[0] / "agent_1", run / "agent_1")
+    counts = save_replay(run, tmp_path / "alone.rrd")
+    data = read_rrd(tmp_path / "alone.rrd")
+    _, poses = read_tum(run / "agent_1" / "trajectory.tum")
+    (line,) = strips(data["world/agents/1/trajectory"])
+    np.testing.assert_allclose(line, poses[:, :3, 3], atol=1e-5)
+    state = torch.load(run / "agent_1" / "state.pt", weights_only=True)
+    n = len(state["point_map"]["xyz_local"])
+    assert counts["agents"]["1"]["points"] == len(positions(data["world/agents/1/points"])) == n
+    assert counts["agents"]["1"]["keyframes"] == len(state["keyframes"]["keyframes"])
+    assert counts["loops"] == {"accepted": 0, "rejected": 0, "without_pose": 0}
+
+
 def test_view_refuses_a_folder_without_trajectories(tmp_path):
     (tmp_path / "empty").mkdir()
     result = _cli([str(tmp_path / "empty"), "--save", str(tmp_path / "x.rrd")])

@@ -69,7 +69,8 @@ def view(
             from cpslam.tools.view.replay import agent_ids
 
             if not run.is_dir() or not agent_ids(run):
-                fail(f"{run}: not a finished run folder (no trajectories/agent_<id>_global.tum)")
+                fail(f"{run}: not a finished run folder (no trajectories/agent_<id>_global.tum "
+                     "nor agent_<id>/trajectory.tum)")
             counts = save_replay(run, save, web=web, web_port=web_port,
                                  sequences=_ground_truth(run, gt or []))
             typer.echo(_summary(counts))

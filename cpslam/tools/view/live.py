@@ -220,12 +220,18 @@ class Observer:
         from cpslam.server.client import query_status
 
         summary = query_status(self.bus, self.session, timeout_s=1.0)
+        images = self._fetch_thumbnails()  # queries wait: not under the lock
         with self._lock:
             self.scene.at(run_s=self.clock() - self.t0)
             if summary is not None:
                 self._log_status(summary)
                 self._log_loops(summary.get("loops", {}).get("recent", []))
-            self._fetch_thumbnails()
+            for agent_id, img in images:
+                a = self.agents[agent_id]
+                a.intr = Intrinsics(img.fx, img.fy, img.cx, img.cy, img.width, img.height)
+                if img.kf_id in a.kf_poses:
+                    self.scene.keyframe(agent_id, a.index, img.kf_id, a.kf_poses[img.kf_id],
+                                        a.intr, img.rgb, static=False)
             for agent_id, a in self.agents.items():
                 if a.dirty:
                     self._refresh(agent_id, a, final)
@@ -275,28 +281,31 @@ class Observer:
             self.scene.loops(np.array(starts), np.array(ends), np.array(accepted), labels,
                              static=False)
 
-    def _fetch_thumbnails(self) -> None:
+    def _fetch_thumbnails(self) -> list[tuple[str, Any]]:
+        """(agent id, KeyframeImage) of up to MAX_THUMBNAILS_PER_POLL waiting keyframes; an
+        error reply (the image is gone) or no reply gives none."""
         from cpslam import protocol
         from cpslam.protocol import KeyframeImage, KeyframeImageRequest, ProtocolError, keys
 
-        budget = MAX_THUMBNAILS_PER_POLL
-        for agent_id, a in self.agents.items():
-            while a.thumbnails and budget > 0:
-                kf = a.thumbnails.pop(0)
-                budget -= 1
-                request = protocol.encode(KeyframeImageRequest(
-                    agent_id=agent_id, kf_id=kf, want_rgb=True, want_depth=False))
-                for reply in self.bus.query(keys.agent_image(self.session, agent_id, kf),
-                                            request, timeout_s=1.0):
-                    try:
-                        img = protocol.decode(reply.payload, expected=KeyframeImage)
-                    except ProtocolError:
-                        continue  # an error reply (image gone): no thumbnail
-                    a.intr = Intrinsics(img.fx, img.fy, img.cx, img.cy, img.width, img.height)
-                    if kf in a.kf_poses:
-                        self.scene.keyframe(agent_id, a.index, kf, a.kf_poses[kf], a.intr,
-                                            img.rgb, static=False)
+        with self._lock:
+            wanted = []
+            for agent_id, a in self.agents.items():
+                take = MAX_THUMBNAILS_PER_POLL - len(wanted)
+                wanted += [(agent_id, kf) for kf in a.thumbnails[:take]]
+                del a.thumbnails[:take]
+        out = []
+        for agent_id, kf in wanted:
+            request = protocol.encode(KeyframeImageRequest(
+                agent_id=agent_id, kf_id=kf, want_rgb=True, want_depth=False))
+            for reply in self.bus.query(keys.agent_image(self.session, agent_id, kf), request,
+                                        timeout_s=1.0):
+                try:
+                    out.append((agent_id, protocol.decode(reply.payload,
+                                                          expected=KeyframeImage)))
                     break
+                except ProtocolError:
+                    continue
+        return out
 
     def _refresh(self, agent_id: str, a: _Agent, final: bool) -> None:
         """Trajectory (frames at their keyframe's latest pose) and sub-map points."""

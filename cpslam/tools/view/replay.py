@@ -35,13 +35,13 @@ def replay_run(run: Path, scene: Scene, sequences: dict[str, Path] | None = None
     run = Path(run)
     ids = agent_ids(run)
     if not ids:
-        raise FileNotFoundError(f"{run}: no trajectories/agent_<id>_global.tum (is this a "
-                                "finished run folder?)")
+        raise FileNotFoundError(f"{run}: no trajectories/agent_<id>_global.tum nor "
+                                "agent_<id>/trajectory.tum (is this a finished run folder?)")
     metrics = _read_json(run / "metrics.json") or {}
     index = _agent_index(ids, metrics)
     sequences = sequences if sequences is not None else demo_sequences(run)
     counts: dict[str, Any] = {"agents": {}}
-    trajectories = {a: read_tum(run / "trajectories" / f"agent_{a}_global.tum") for a in ids}
+    trajectories = {a: read_tum(_trajectory_path(run, a)) for a in ids}
     graph = _read_g2o(run / "pose_graph.g2o")
     kf_poses = {key: T for key, T in graph["kf_poses"].items()}
     for a in ids:
@@ -134,15 +134,16 @@ def _log_points(scene: Scene, run: Path, ids: list[str], index: dict[str, int]) 
 
     files = sorted(run.glob("fused_map_*.pt")) or ([run / "fused_map.pt"]
                                                   if (run / "fused_map.pt").is_file() else [])
-    if not files:
-        logger.warning("%s: no fused_map*.pt, no points", run)
+    maps = [(NeuralPointMap.load(path), None) for path in files] or _agent_maps(run, ids, index)
+    if not maps:
+        logger.warning("%s: no fused_map*.pt nor agent states, no points", run)
         return {}
     xyz_all, colour_all, agent_all = [], [], []
-    for path in files:
-        pmap = NeuralPointMap.load(path)
+    for pmap, owner in maps:
         xyz_all.append(pmap.xyz_world().numpy())
         colour_all.append(pmap.color.numpy().astype(np.uint8))
-        agent_all.append(pmap.agent_id.numpy())
+        agents = pmap.agent_id.numpy()
+        agent_all.append(agents if owner is None else np.full_like(agents, owner))
     xyz, colours, agents = (np.concatenate(x) for x in (xyz_all, colour_all, agent_all))
     counts = {}
     by_index = {i: a for a, i in index.items()}
@@ -154,6 +155,24 @@ def _log_points(scene: Scene, run: Path, ids: list[str], index: dict[str, int]) 
     scene.points("world/map/by_agent", xyz, np.stack([agent_colour(i) for i in agents])
                  if len(agents) else None)
     return counts
+
+
+def _agent_maps(run: Path, ids: list[str], index: dict[str, int]) -> list:
+    """(map, agent index) of each agent's own state.pt (a run without a server), in the
+    agent's own world."""
+    import torch
+
+    from cpslam.common.field import NeuralPointMap
+
+    maps = []
+    for a in ids:
+        path = run / f"agent_{a}" / "state.pt"
+        if path.is_file():
+            state = torch.load(path, map_location="cpu", weights_only=True)["point_map"]
+            pmap = NeuralPointMap(feature_dim=1, cell_size=1.0)
+            pmap.load_state_dict(state, source=str(path))
+            maps.append((pmap, index[a]))
+    return maps
 
 
 def _log_mesh(scene: Scene, path: Path) -> int:
@@ -252,11 +271,20 @@ def _read_g2o(path: Path) -> dict:
 
 
 def agent_ids(run: Path) -> list[str]:
-    """Ids of the agents with a global trajectory in RUN/trajectories/, numbers first."""
+    """Ids of the agents with a trajectory, numbers first: the server's global ones in
+    RUN/trajectories/, else the agents' own (``cpslam-agent --standalone --no-loops``)."""
     suffix = "_global.tum"
     names = [p.name[len("agent_"):-len(suffix)]
-             for p in (run / "trajectories").glob(f"agent_*{suffix}")]
+             for p in (Path(run) / "trajectories").glob(f"agent_*{suffix}")]
+    if not names:
+        names = [p.parent.name[len("agent_"):]
+                 for p in Path(run).glob("agent_*/trajectory.tum")]
     return sorted(names, key=lambda a: (not a.isdigit(), int(a) if a.isdigit() else 0, a))
+
+
+def _trajectory_path(run: Path, agent: str) -> Path:
+    path = run / "trajectories" / f"agent_{agent}_global.tum"
+    return path if path.is_file() else run / f"agent_{agent}" / "trajectory.tum"
 
 
 def _agent_index(ids: list[str], metrics: dict) -> dict[str, int]:
