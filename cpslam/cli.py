@@ -19,6 +19,7 @@ from cpslam.tools.eval.cli import ate as eval_ate
 from cpslam.tools.eval.recon_cli import recon as eval_recon
 from cpslam.tools.render import render
 from cpslam.tools.synth.cli import synth as dataset_synth
+from cpslam.tools.view.cli import view
 
 app = App(
     no_args_is_help=True,
@@ -44,6 +45,7 @@ eval_app.command("ate")(eval_ate)
 eval_app.command("recon")(eval_recon)
 config_app.command("show")(config_show)
 app.command("render")(render)
+app.command("view")(view)
 app.command("run")(run_command)
 app.command("demo")(demo)
 app.command("status")(server_status)

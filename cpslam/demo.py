@@ -130,7 +130,8 @@ def demo(
     server and prints a table (per-agent and global ATE, loops, merge time, map size, bytes
     sent per agent), the traffic per agent and key expression (MB, kB/s) and the peak memory
     of each process. Outputs in --out: trajectories/, fused_map.ply, mesh.ply,
-    pose_graph.g2o, metrics.json, report.json, plots/*.png, logs/.
+    pose_graph.g2o, metrics.json, report.json, plots/*.png, logs/ and, with rerun-sdk
+    installed, demo.rrd (the 3-D view: `rerun RUN/demo.rrd`).
 
     Examples:
 
@@ -339,6 +340,22 @@ def _report(out: Path, info: dict, mesh: bool, show: bool) -> None:
                   "agent_<id>/metrics.json\n"
                   f"  plots                plots/: {plots}\n"
                   "  logs                 logs/server.log, logs/agent_<id>.log", soft_wrap=True)
+    _save_view(out, seqs, console)
+
+
+def _save_view(out: Path, seqs: dict[str, Path], console: Any) -> None:
+    """RUN/demo.rrd, the replay `cpslam view RUN --save` makes, when rerun-sdk is installed."""
+    from cpslam.tools.view import RerunMissingError
+    from cpslam.tools.view.cli import save_replay
+
+    path = out / "demo.rrd"
+    try:
+        save_replay(out, path, sequences=seqs)
+    except RerunMissingError as err:
+        console.print(f"3-D view: skipped ({err})", soft_wrap=True)
+        return
+    console.print(f"3-D view ({path.stat().st_size / 1e6:.1f} MB): rerun {path}",
+                  soft_wrap=True)
 
 
 def _interrupt(_signum: int, _frame: object) -> None:

@@ -100,6 +100,8 @@ def run_metrics(groups: list[Group], registry: Registry, agents: list[AgentResul
                     "rounds": g.round} for g in groups],
         "agents": {a.agent_id: {"group": a.group_id, "merged": a.merged, "frames": len(a.stamps),
                                 "global_frame": "group" if a.merged else "own (never merged)",
+                                # the agent's number in fused_map.pt's agent_id column
+                                "index": registry.agents[a.agent_id].index,
                                 "bytes": registry.agents[a.agent_id].bytes,
                                 "messages": registry.agents[a.agent_id].messages,
                                 "dropped": dict(registry.agents[a.agent_id].dropped)}

@@ -39,6 +39,9 @@ __all__ = ["LoopPipeline"]
 
 logger = logging.getLogger(__name__)
 
+RECENT_LOOPS = 200
+"""Verified loop pairs listed in the status summary (the newest; keeps the reply small)."""
+
 
 class LoopPipeline:
     """Loop candidates queued, verified and recorded (see the module docstring).
@@ -179,11 +182,16 @@ class LoopPipeline:
         return self._images[key]
 
     def status(self) -> dict:
-        """The loop counts of the status summary."""
+        """The loop counts of the status summary and, as ``recent``, the last RECENT_LOOPS
+        verified pairs (what a live view draws as loop edges)."""
+        recent = [{"loop_id": lp.loop_id, "agent_a": lp.agent_a, "kf_a": lp.kf_a,
+                   "agent_b": lp.agent_b, "kf_b": lp.kf_b, "score": float(lp.score),
+                   "kind": lp.kind, "accepted": bool(lp.accepted)}
+                  for lp in self.records[-RECENT_LOOPS:]]
         return {"found": self.found,
                 "accepted": sum(lp.accepted for lp in self.records),
                 "rejected": sum(not lp.accepted for lp in self.records),
-                "pending": len(self.queue), "retrying": len(self.retry)}
+                "pending": len(self.queue), "retrying": len(self.retry), "recent": recent}
 
     def state_dict(self) -> dict:
         """The back end state's ``loops``, ``loop_book`` and ``queued`` entries."""

@@ -7,6 +7,7 @@ accuracy (30 frames spread over the 300-frame walk move 10 cm per frame, too fas
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import subprocess
 import sys
@@ -46,6 +47,9 @@ def test_demo_tiny_end_to_end(tmp_path: Path) -> None:
     assert report["all"]["joint_ate_m"] is not None
     assert report["mesh"]["triangles"] > 0
     assert "ATE glob" in done.stdout and "outputs in" in done.stdout
+    if importlib.util.find_spec("rerun") is not None:  # the viz extra: the 3-D view too
+        assert (out / "demo.rrd").stat().st_size > 10_000
+        assert f"rerun {out / 'demo.rrd'}" in done.stdout
     info = json.loads((out / "demo.json").read_text())
     assert info["frame_slice"] == "0:300:10" and info["wall_s"] > 0
     # `auto` threads: the server and the two agents divide the cores between them.

@@ -9,6 +9,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import signal
 from pathlib import Path
@@ -26,6 +27,7 @@ from daemons import (
 )
 
 pytestmark = [pytest.mark.loopback, pytest.mark.slow]
+VIZ = importlib.util.find_spec("rerun") is not None
 pytest.importorskip("open3d")  # the synthetic renderer
 
 
@@ -54,6 +56,11 @@ def test_two_agents_merge_over_tcp(tmp_path: Path, endpoint: str, apartment, dae
     out, s = tmp_path / "run", "merge"
     server = Daemon("server", server_args(endpoint, s, out), tmp_path)
     daemons.append(server)
+    # A live 3-D view of the session, when the viz extra is installed (it only listens).
+    live = tmp_path / "live.rrd"
+    viewer = Daemon("viewer", ["-m", "cpslam", "view", "--connect", endpoint, "--session", s,
+                               "--save", str(live)], tmp_path) if VIZ else None
+    daemons.extend([viewer] if viewer else [])
     agents = [Daemon(f"agent{a}", agent_args(apartment.agent_dirs[a], str(a), endpoint, s, out,
                                              "--frames", "0:300:3"), tmp_path)
               for a in (0, 1)]
@@ -65,6 +72,10 @@ def test_two_agents_merge_over_tcp(tmp_path: Path, endpoint: str, apartment, dae
     assert sorted(summary["agents"]) == ["0", "1"]
     finalise(endpoint, s)
     assert server.wait(120) == 0, server.tail()
+    if viewer is not None:
+        viewer.signal(signal.SIGINT)
+        assert viewer.wait(60) == 0, viewer.tail()
+        _check_live_view(live)
 
     metrics = json.loads((out / "metrics.json").read_text())
     assert len(metrics["groups"]) == 1, metrics["groups"]
@@ -86,6 +97,18 @@ def test_two_agents_merge_over_tcp(tmp_path: Path, endpoint: str, apartment, dae
         pairs.append(((seq.timestamps, seq.gt_poses()), est))
     # The same bound as the in-process run (tests/integration/test_run.py): tiny is coarse.
     assert joint_ate(pairs, align="se3").overall.rmse < 0.8
+
+
+def _check_live_view(path: Path) -> None:
+    """Both agents' keyframes, trajectories and points, and their merge, reached the view."""
+    from view_rrd import positions, read_rrd
+
+    data = read_rrd(path)
+    for a in ("0", "1"):
+        assert any(p.startswith(f"world/agents/{a}/keyframes/") for p in data), sorted(data)
+        assert data[f"world/agents/{a}/trajectory"] and data[f"world/agents/{a}/camera"]
+        assert len(positions(data[f"world/agents/{a}/points"])) > 0
+    assert data["events/merges"] and data["status/loops/found"]
 
 
 def test_late_joiner_and_killed_agent(tmp_path: Path, endpoint: str, apartment,

@@ -227,6 +227,9 @@ def test_dockerfile_installs_pinned_torch_before_the_package() -> None:
     args = [a for w, a in _instructions() if w == "RUN" and "pip install" in a]
     assert not any(re.search(r"(-e|--editable)\s|\[dev\]", a) for a in args), args
     assert ("ARG", "TORCH_INDEX_URL=https://download.pytorch.org/whl/cpu") in _instructions()
+    # The viewer (viz extra) only when a build argument asks for it.
+    assert ("ARG", "CPSLAM_EXTRAS=") in _instructions()
+    assert not any(re.search(r"\[[\w,]*viz", a) for a in args), args
 
 
 def test_dockerfile_base_user_and_layout() -> None:

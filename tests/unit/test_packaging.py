@@ -259,3 +259,25 @@ def test_runtime_never_imports_the_tools(tmp_path: Path) -> None:
     assert _violations(tmp_path, "server") == ["server/export.py:2 imports cpslam.tools.mesh"]
     assert _violations(tmp_path, "cpslam/tools") == [
         "cpslam/tools/eval/run.py:5 imports cpslam.demo"]
+
+
+def test_only_the_viewer_imports_rerun() -> None:
+    """rerun-sdk is the optional `viz` extra: nothing outside cpslam/tools/view imports it, and
+    the daemons' and the umbrella's entry points load without pulling it in."""
+    import subprocess
+
+    viewer = ROOT / "cpslam" / "tools" / "view"
+    bad = []
+    for folder in ("protocol", "common", "agent", "server", "cpslam"):
+        for path in sorted((ROOT / folder).rglob("*.py")):
+            if viewer in path.parents:
+                continue
+            bad += [f"{path.relative_to(ROOT)}:{line}" for line, name in
+                    _imported(path, TOP.get(folder, "cpslam"))
+                    if name.split(".")[0] in ("rerun", "rerun_bindings")]
+    assert not bad, "imports rerun outside cpslam/tools/view: " + ", ".join(bad)
+    code = ("import sys, cpslam.agent_cli, cpslam.server.cli, cpslam.cli, cpslam.demo; "
+            "print(sorted(m for m in sys.modules if m.split('.')[0].startswith('rerun')))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=120, check=True)
+    assert done.stdout.strip() == "[]", done.stdout
