@@ -202,22 +202,10 @@ class BagSequence(RGBDSequence):
         depth = dec.decode_depth(depth_ref.msgtype, msgs[1], self.depth_scale, where[1])
         return rgb, depth, where[0], where[1]
 
-    def _subset(self, positions: np.ndarray) -> BagSequence:
-        return BagSequence(
-            access=self.access,
-            topics=self.topics,
-            refs=(self._refs[0].take(positions), self._refs[1].take(positions)),
-            path=self.path,
-            format=self.format,
-            intrinsics=self.intrinsics,
-            indices=self.indices[positions],
-            timestamps=self.timestamps[positions],
-            rgb_paths=[self.rgb_paths[p] for p in positions],
-            depth_paths=[self.depth_paths[p] for p in positions],
-            depth_scale=self.depth_scale,
-            fps=self.fps,
-            pose_reader=self._pose_reader,
-        )
+    def _subset_args(self, positions: np.ndarray) -> dict[str, Any]:
+        refs = (self._refs[0].take(positions), self._refs[1].take(positions))
+        return {**super()._subset_args(positions), "access": self.access,
+                "topics": self.topics, "refs": refs}
 
 
 def _open_reader(path: Path) -> Any:

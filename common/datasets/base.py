@@ -11,7 +11,7 @@ import re
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import overload
+from typing import Any, overload
 
 import cv2
 import numpy as np
@@ -199,14 +199,19 @@ class RGBDSequence:
     def _read_images(self, i: int) -> tuple[np.ndarray, np.ndarray, str, str]:
         """Colour (uint8 RGB) and depth (float32 m) at position i, and where each came from.
 
-        Formats that do not store one image per file (bags) override this and `_subset`.
+        Formats that do not store one image per file (bags) override this and
+        `_subset_args`.
         """
         depth = read_depth(self.depth_paths[i], self.depth_scale, self.invalid_depth_values)
         rgb = read_rgb(self.rgb_paths[i])
         return rgb, depth, str(self.rgb_paths[i]), str(self.depth_paths[i])
 
     def _subset(self, positions: np.ndarray) -> RGBDSequence:
-        return RGBDSequence(
+        return type(self)(**self._subset_args(positions))
+
+    def _subset_args(self, positions: np.ndarray) -> dict[str, Any]:
+        """Constructor arguments of the sequence of the frames at `positions`."""
+        return dict(
             path=self.path,
             format=self.format,
             intrinsics=self.intrinsics,

@@ -140,7 +140,9 @@ def summarize(sequence: RGBDSequence, samples: int = 5) -> dict[str, Any]:
         gt["trajectory_length_m"] = float(np.linalg.norm(np.diff(xyz, axis=0), axis=1).sum())
 
     camera = sequence.intrinsics
+    topics = getattr(sequence, "topics", None)  # bags only
     return {
+        **({"topics": topics} if topics is not None else {}),
         "format": sequence.format,
         "path": str(sequence.path),
         "frames": n,
@@ -179,6 +181,11 @@ def format_summary(summary: dict[str, Any]) -> str:
     rows = [
         ("format", summary["format"]),
         ("path", summary["path"]),
+        *(
+            [("topics", ", ".join(f"{k} {v}" for k, v in summary["topics"].items() if v))]
+            if "topics" in summary
+            else []
+        ),
         (
             "frames",
             f"{summary['frames']} (indices {summary['first_index']}.."

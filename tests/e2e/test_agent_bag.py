@@ -43,7 +43,8 @@ def test_agent_runs_on_a_bag_and_is_scored_against_its_pose_topic(bag: Path,
                                         "--out", str(tmp_path / "ate.json")])
     assert result.exit_code == 0, result.output
     ate = json.loads((tmp_path / "ate.json").read_text())
-    assert ate["n_pairs"] == 3 and ate["rmse_m"] < 0.05  # three frames: a few millimetres
+    # over seeds 0-4 the RMSE was 0.35-1.9 cm; 5 cm leaves room for other CPUs
+    assert ate["n_pairs"] == 3 and ate["rmse_m"] < 0.05
 
 
 def test_run_takes_a_bag(bag: Path, tmp_path: Path) -> None:

@@ -87,9 +87,14 @@ def test_dataset_info_on_a_bag(bags: dict[str, Path]) -> None:
     assert summary["intrinsics"] == {"fx": 585.0, "fy": 585.0, "cx": 320.0, "cy": 240.0}
     assert summary["depth_scale"] == 1000.0
     assert summary["ground_truth"]["frames"] == 6
+    assert summary["topics"] == {"rgb": COLOUR, "depth": "/camera/depth/image_raw",
+                                 "info": "/camera/color/camera_info", "pose": POSE}
     result = CliRunner().invoke(app, [str(bags["ros1"]), "--topic-pose", "none"])
     assert result.exit_code == 0, result.output
-    assert "ground truth no" in " ".join(result.output.split())
+    text = " ".join(result.output.split())
+    assert "ground truth no" in text
+    assert ("topics rgb /camera/color/image_raw, depth /camera/depth/image_raw, "
+            "info /camera/color/camera_info") in text
 
 
 def test_depth_pairing_tolerance(source: RGBDSequence, tmp_path: Path) -> None:
