@@ -36,12 +36,14 @@ def write_bag(
     with_info: bool = True,
     with_pose: bool = True,
     depth_offset_ns: int = 0,
+    depth_stride: int = 1,
     extra: tuple[tuple[str, str], ...] = (),
 ) -> Path:
     """Write `seq` to a "ros1" .bag, a "ros2" sqlite3 folder or an "mcap" ROS 2 file.
 
     `extra` adds (topic, msgtype) pairs holding a copy of the colour or pose stream
-    (to make detection ambiguous). Depth is converted from metres back to the encoding.
+    (to make detection ambiguous). Depth is converted from metres back to the encoding;
+    `depth_stride` 2 writes every second depth pixel (a depth image not registered to colour).
     Returns the path to open.
     """
     from rosbags.typesys import Stores, get_typestore
@@ -79,7 +81,8 @@ def write_bag(
             ns = stamp_ns(frame.timestamp)
             msgs = {
                 names["rgb"]: _colour(T, header(ns, "color"), frame.rgb, compressed),
-                names["depth"]: _depth(T, header(ns + depth_offset_ns, "color"), frame.depth,
+                names["depth"]: _depth(T, header(ns + depth_offset_ns, "color"),
+                                       frame.depth[::depth_stride, ::depth_stride],
                                        seq.depth_scale, depth_encoding, compressed),
             }
             if with_info:

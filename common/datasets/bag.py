@@ -78,10 +78,17 @@ def load(
             f"{depth_where}: depth encoding {first_depth.encoding!r} is not supported; "
             "expected one of " + ", ".join(dec.DEPTH_ENCODINGS)
         )
+    rgb_where = f"{root}: topic {chosen['rgb']}"
     first_rgb = access.read(rgb.conns[0], int(rgb.log_ns[0]), int(rgb.ordinal[0]))
-    dec.check_colour(rgb.msgtype, first_rgb, f"{root}: topic {chosen['rgb']}")
+    rgb_hw = dec.decode_colour(rgb.msgtype, first_rgb, rgb_where).shape[:2]
     depth_scale = 1.0 if depth_kind == "32FC1" else (sidecar.depth_scale or DEPTH_SCALE)
     depth_hw = dec.decode_depth(depth.msgtype, first_depth, depth_scale, depth_where).shape
+    if rgb_hw != depth_hw:
+        raise DatasetError(
+            f"{root}: colour {chosen['rgb']} is {rgb_hw[1]}x{rgb_hw[0]} but depth "
+            f"{chosen['depth']} is {depth_hw[1]}x{depth_hw[0]}; they must match, with depth "
+            "registered to colour (e.g. a driver's aligned_depth_to_color topic)"
+        )
 
     pairs = associate(rgb.stamps, depth.stamps, max_dt)
     if not pairs:
@@ -102,6 +109,13 @@ def load(
         why_no_defaults="the bag has no sensor_msgs/CameraInfo topic; pass --topic-info if "
         "it has one under another type name, or give fx, fy, cx, cy",
     )
+    if (camera.height, camera.width) != depth_hw:
+        raise DatasetError(
+            f"{root}: the intrinsics (camera info {chosen['info']}, overrides or camera.yaml) "
+            f"are for {camera.width}x{camera.height} images but depth {chosen['depth']} is "
+            f"{depth_hw[1]}x{depth_hw[0]}; name the depth images' camera info with "
+            "--topic-info, or give matching width and height"
+        )
     stamps = rgb.stamps[rows]
     poses = _ground_truth(access, chosen["pose"], stamps, rows, max_dt) if chosen["pose"] else {}
     if sidecar.fps is not None:

@@ -67,6 +67,7 @@ def check_colour(msgtype: str, msg: Any, where: str) -> None:
 
 def decode_colour(msgtype: str, msg: Any, where: str) -> np.ndarray:
     """uint8 [H, W, 3] RGB from a sensor_msgs Image or CompressedImage."""
+    check_colour(msgtype, msg, where)
     if msgtype == COMPRESSED:
         bgr = cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_COLOR)
         if bgr is None:
@@ -77,7 +78,6 @@ def decode_colour(msgtype: str, msg: Any, where: str) -> np.ndarray:
         if after.startswith("rgb"):
             return np.ascontiguousarray(bgr)
         return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
-    check_colour(msgtype, msg, where)
     channels = {"rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4, "mono8": 1}[msg.encoding]
     img = _raw_pixels(msg, np.dtype(np.uint8), channels, where)
     if msg.encoding == "mono8":

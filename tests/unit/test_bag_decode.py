@@ -48,6 +48,12 @@ def test_unsupported_colour_encoding_names_it() -> None:
         dec.decode_colour(dec.IMAGE, msg, "bag: topic /c")
 
 
+def test_compressed_depth_is_not_colour() -> None:
+    msg = NS(format="16UC1; compressedDepth png", data=np.zeros(30, np.uint8))
+    with pytest.raises(DatasetError, match=r"t: is compressed depth .*, not a colour image"):
+        dec.decode_colour(dec.COMPRESSED, msg, "t")
+
+
 @pytest.mark.parametrize("fmt, order", [("rgb8; png compressed bgr8", "bgr"),
                                         ("png", "bgr"), ("rgb8; png compressed rgb8", "rgb")])
 def test_compressed_colour_channel_order(fmt: str, order: str) -> None:

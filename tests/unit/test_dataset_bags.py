@@ -169,6 +169,20 @@ def test_no_camera_info_needs_intrinsics(source: RGBDSequence, tmp_path: Path) -
     np.testing.assert_array_equal(scaled[0].depth, np.float32(2) * seq[0].depth)
 
 
+def test_sizes_must_agree(bags: dict[str, Path]) -> None:
+    with pytest.raises(DatasetError, match=r"kitchen\.bag: the intrinsics \(camera info "
+                       r"/camera/color/camera_info, overrides or camera\.yaml\) are for 320x240 "
+                       r"images but depth /camera/depth/image_raw is 640x480"):
+        open_sequence(bags["ros1"], overrides={"width": 320, "height": 240})
+
+
+def test_colour_and_depth_sizes_must_agree(source: RGBDSequence, tmp_path: Path) -> None:
+    bag = write_bag(tmp_path / "half.bag", source[:2], "ros1", depth_stride=2)
+    with pytest.raises(DatasetError, match=r"half\.bag: colour /camera/color/image_raw is "
+                       r"640x480 but depth /camera/depth/image_raw is 320x240; they must match"):
+        open_sequence(bag)
+
+
 def test_topics_are_for_bags_only(kitchen_path: Path) -> None:
     with pytest.raises(DatasetError, match=r"topics \(rgb\) apply to bags only, this is a "
                        r"7scenes sequence"):
