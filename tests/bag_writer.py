@@ -37,6 +37,7 @@ def write_bag(
     with_pose: bool = True,
     depth_offset_ns: int = 0,
     depth_stride: int = 1,
+    with_tf: bool = False,
     extra: tuple[tuple[str, str], ...] = (),
 ) -> Path:
     """Write `seq` to a "ros1" .bag, a "ros2" sqlite3 folder or an "mcap" ROS 2 file.
@@ -44,6 +45,8 @@ def write_bag(
     `extra` adds (topic, msgtype) pairs holding a copy of the colour or pose stream
     (to make detection ambiguous). Depth is converted from metres back to the encoding;
     `depth_stride` 2 writes every second depth pixel (a depth image not registered to colour).
+    `with_tf` adds /tf with two transforms per frame: world -> camera (the ground truth) and
+    camera -> camera_optical (identity).
     Returns the path to open.
     """
     from rosbags.typesys import Stores, get_typestore
@@ -56,6 +59,11 @@ def write_bag(
         names["depth"] += "/compressedDepth"
     ros1 = kind == "ros1"
     store = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
+    if ros1 and with_tf:  # rosbags' Noetic store has no tf2_msgs
+        from rosbags.typesys import get_types_from_msg
+
+        store.register(get_types_from_msg("geometry_msgs/TransformStamped[] transforms",
+                                          "tf2_msgs/msg/TFMessage"))
     T = store.types
 
     def header(ns: int, frame: str) -> object:
@@ -70,6 +78,8 @@ def write_bag(
         streams.append((names["info"], "sensor_msgs/msg/CameraInfo"))
     if with_pose and seq.has_gt:
         streams.append((names["pose"], "geometry_msgs/msg/PoseStamped"))
+    if with_tf:
+        streams.append(("/tf", "tf2_msgs/msg/TFMessage"))
     streams.extend(extra)
 
     writer, serialize = _writer(path, kind, store)
@@ -102,6 +112,19 @@ def write_bag(
                     orientation=T["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]))
                 msgs[names["pose"]] = T["geometry_msgs/msg/PoseStamped"](
                     header=header(ns, "world"), pose=pose)
+            if with_tf:
+                transforms = [
+                    T["geometry_msgs/msg/TransformStamped"](
+                        header=header(ns, parent), child_frame_id=child,
+                        transform=T["geometry_msgs/msg/Transform"](
+                            translation=T["geometry_msgs/msg/Vector3"](x=t[0], y=t[1], z=t[2]),
+                            rotation=T["geometry_msgs/msg/Quaternion"](
+                                x=q[0], y=q[1], z=q[2], w=q[3])))
+                    for parent, child, (t, q) in (
+                        ("/world", "camera", pose_to_tq(frame.gt_pose)),
+                        ("camera", "camera_optical", pose_to_tq(np.eye(4))))
+                ]
+                msgs["/tf"] = T["tf2_msgs/msg/TFMessage"](transforms=transforms)
             for topic, msgtype in extra:
                 source = names["pose"] if "Pose" in msgtype else names["rgb"]
                 msgs[topic] = msgs[source]

@@ -277,18 +277,57 @@ def _camera_info(access: BagAccess, topic: str) -> dict[str, float | int]:
     raise DatasetError(f"{where}: has no CameraInfo messages")
 
 
-def _ground_truth(access: BagAccess, topic: str, frame_stamps: np.ndarray, rows: np.ndarray,
+def _ground_truth(access: BagAccess, spec: str, frame_stamps: np.ndarray, rows: np.ndarray,
                   max_dt: float) -> dict[int, np.ndarray]:
-    """Each frame's pose: the pose message nearest in header time, if within max_dt."""
+    """Each frame's pose: the pose message nearest in header time, if within max_dt.
+
+    `spec` is a topic, or "TOPIC:PARENT:CHILD" for a tf topic.
+    """
+    topic, _, frames = spec.partition(":")
     reader = access.reader()
-    stamps, poses = [], []
-    for conn, log_ns, raw in reader.messages(access.connections(topic)):
-        msg = reader.deserialize(raw, conn.msgtype)
-        where = f"{access.path}: topic {topic} message at {log_ns} ns"
-        poses.append(dec.pose_matrix(conn.msgtype, msg, where))
-        stamps.append((dec.stamp_ns(msg) or log_ns) * 1e-9)
+    conns = access.connections(topic)
+    if conns[0].msgtype in dec.TF_TYPES:
+        stamps, poses = _tf_poses(access, topic, frames)
+    else:
+        stamps, poses = [], []
+        for conn, log_ns, raw in reader.messages(conns):
+            msg = reader.deserialize(raw, conn.msgtype)
+            where = f"{access.path}: topic {topic} message at {log_ns} ns"
+            poses.append(dec.pose_matrix(conn.msgtype, msg, where))
+            stamps.append((dec.stamp_ns(msg) or log_ns) * 1e-9)
     nearest = nearest_within(frame_stamps, np.asarray(stamps), max_dt)
     matched = {int(row): poses[k] for row, k in zip(rows, nearest, strict=True) if k >= 0}
-    logger.info("%s: ground truth from %s for %d of %d frames", access.path, topic,
+    logger.info("%s: ground truth from %s for %d of %d frames", access.path, spec,
                 len(matched), len(rows))
     return matched
+
+
+def _tf_poses(access: BagAccess, topic: str, frames: str) -> tuple[list[float], list[np.ndarray]]:
+    """Stamps and poses of one parent/child pair of a tf topic (leading '/' ignored)."""
+    reader = access.reader()
+    wanted = tuple(f.strip().lstrip("/") for f in frames.split(":")) if frames else None
+    if wanted is not None and (len(wanted) != 2 or not all(wanted)):
+        raise DatasetError(f"{access.path}: --topic-pose {topic}:{frames}: expected "
+                           f"{topic}:PARENT:CHILD")
+    pairs: set[tuple[str, str]] = set()
+    stamps: list[float] = []
+    poses: list[np.ndarray] = []
+    for conn, log_ns, raw in reader.messages(access.connections(topic)):
+        for tf in reader.deserialize(raw, conn.msgtype).transforms:
+            pair = (tf.header.frame_id.lstrip("/"), tf.child_frame_id.lstrip("/"))
+            pairs.add(pair)
+            if wanted is None and len(pairs) > 1:
+                break
+            if wanted is not None and pair != wanted:
+                continue
+            where = f"{access.path}: topic {topic} {pair[0]} -> {pair[1]} at {log_ns} ns"
+            poses.append(dec.pose_matrix("geometry_msgs/msg/TransformStamped", tf, where))
+            stamps.append((dec.stamp_ns(tf) or log_ns) * 1e-9)
+        if wanted is None and len(pairs) > 1:
+            break
+    if not poses or (wanted is None and len(pairs) > 1):
+        found = ", ".join(f"{p}:{c}" for p, c in sorted(pairs)) or "none"
+        what = f"no transform {wanted[0]} -> {wanted[1]}" if wanted else "several frame pairs"
+        raise DatasetError(f"{access.path}: topic {topic} has {what} (seen: {found}); "
+                           f"choose one with --topic-pose {topic}:PARENT:CHILD")
+    return stamps, poses

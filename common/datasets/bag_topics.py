@@ -10,7 +10,9 @@ detected, and must be the only candidate:
 - camera info: the only CameraInfo topic, else the one beside the depth topic (same
   namespace), else the one beside the colour topic; none means intrinsics must be given;
 - pose: the only PoseStamped, PoseWithCovarianceStamped, TransformStamped or Odometry topic;
-  none means no ground truth; "none" turns it off.
+  none means no ground truth; "none" turns it off. A tf topic (tf2_msgs/TFMessage, ROS 1's
+  tf/tfMessage) is used only when named, as "TOPIC" (it must hold one parent/child pair)
+  or "TOPIC:PARENT:CHILD".
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ _EXPECTED = {
     "rgb": _IMAGE_TYPES,
     "depth": _IMAGE_TYPES,
     "info": (dec.CAMERA_INFO,),
-    "pose": dec.POSE_TYPES,
+    "pose": (*dec.POSE_TYPES, *dec.TF_TYPES),
 }
 _FLAG = {"rgb": "--topic-rgb", "depth": "--topic-depth", "info": "--topic-info",
          "pose": "--topic-pose"}
@@ -42,7 +44,14 @@ def choose_topics(root: Path, reader: Any, given: dict[str, str | None]) -> dict
         if key == "pose" and topic is not None and topic.lower() == "none":
             chosen[key] = None
             continue
-        if topic is not None:
+        if key == "pose" and topic is not None and ":" in topic:
+            name = topic.split(":", 1)[0]
+            if _check_given(root, types, key, name) and types[name] not in dec.TF_TYPES:
+                raise DatasetError(f"{root}: --topic-pose {topic}: PARENT:CHILD frames apply "
+                                   f"to tf topics ({', '.join(dec.TF_TYPES)}), {name} is "
+                                   f"{types[name]}")
+            chosen[key] = topic
+        elif topic is not None:
             chosen[key] = _check_given(root, types, key, topic)
 
     if chosen.get("rgb") is None or chosen.get("depth") is None:

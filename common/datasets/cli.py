@@ -50,8 +50,9 @@ TopicInfoOpt = Annotated[
 TopicPoseOpt = Annotated[
     str | None,
     typer.Option("--topic-pose", help="Bags: ground-truth pose topic (PoseStamped, "
-                 "PoseWithCovarianceStamped, TransformStamped or Odometry), for evaluation "
-                 "only; 'none' reads none (default: the only pose topic, if any)."),
+                 "PoseWithCovarianceStamped, TransformStamped or Odometry; tf as "
+                 "/tf:PARENT:CHILD), for evaluation only; 'none' reads none (default: the "
+                 "only pose topic, if any)."),
 ]
 
 

@@ -155,6 +155,23 @@ def test_ambiguous_topics(source: RGBDSequence, tmp_path: Path) -> None:
     assert not open_sequence(two, topics={"rgb": COLOUR, "pose": "none"}).has_gt
 
 
+def test_ground_truth_from_tf(source: RGBDSequence, tmp_path: Path) -> None:
+    """/tf is read only when named; a pair of frames picks the camera's transform."""
+    bag = write_bag(tmp_path / "tf.bag", source[:3], "ros1", with_tf=True)
+    assert open_sequence(bag).topics["pose"] == POSE  # not /tf
+    with pytest.raises(DatasetError, match=r"tf\.bag: topic /tf has several frame pairs "
+                       r"\(seen: camera:camera_optical, world:camera\); choose one with "
+                       r"--topic-pose /tf:PARENT:CHILD"):
+        open_sequence(bag, topics={"pose": "/tf"})
+    with pytest.raises(DatasetError, match=r"topic /tf has no transform world -> nope"):
+        open_sequence(bag, topics={"pose": "/tf:world:nope"})
+    with pytest.raises(DatasetError, match=r"--topic-pose /ground_truth/pose:a:b: "
+                       r"PARENT:CHILD frames apply to tf topics"):
+        open_sequence(bag, topics={"pose": POSE + ":a:b"})
+    seq = open_sequence(bag, topics={"pose": "/tf:/world:camera"})
+    np.testing.assert_allclose(seq.gt_poses(), source[:3].gt_poses(), rtol=0, atol=1e-12)
+
+
 def test_no_camera_info_needs_intrinsics(source: RGBDSequence, tmp_path: Path) -> None:
     bag = write_bag(tmp_path / "noinfo.bag", source[:2], "ros1", with_info=False,
                     with_pose=False)
