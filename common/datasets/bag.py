@@ -70,7 +70,7 @@ def load(
 
     rgb = _index(access, chosen["rgb"])
     depth = _index(access, chosen["depth"])
-    first_depth = access.read(depth.conns[0], int(depth.log_ns[0]), int(depth.ordinal[0]))
+    first_depth = access.read(depth.conn[0], int(depth.log_ns[0]), int(depth.ordinal[0]))
     depth_kind = dec.depth_kind(depth.msgtype, first_depth)
     depth_where = f"{root}: topic {chosen['depth']}"
     if depth.msgtype == dec.IMAGE and depth_kind is None:
@@ -79,7 +79,7 @@ def load(
             "expected one of " + ", ".join(dec.DEPTH_ENCODINGS)
         )
     rgb_where = f"{root}: topic {chosen['rgb']}"
-    first_rgb = access.read(rgb.conns[0], int(rgb.log_ns[0]), int(rgb.ordinal[0]))
+    first_rgb = access.read(rgb.conn[0], int(rgb.log_ns[0]), int(rgb.ordinal[0]))
     rgb_hw = dec.decode_colour(rgb.msgtype, first_rgb, rgb_where).shape[:2]
     depth_scale = 1.0 if depth_kind == "32FC1" else (sidecar.depth_scale or DEPTH_SCALE)
     depth_hw = dec.decode_depth(depth.msgtype, first_depth, depth_scale, depth_where).shape
@@ -160,10 +160,12 @@ class BagAccess:
     def connections(self, topic: str) -> list[Any]:
         return [c for c in self.reader().connections if c.topic == topic]
 
-    def read(self, conn: Any, log_ns: int, ordinal: int) -> Any:
-        """The `ordinal`-th message of `conn` received at `log_ns`, deserialised."""
+    def read(self, conn_id: int, log_ns: int, ordinal: int) -> Any:
+        """The `ordinal`-th message of connection `conn_id` (its position in the reader's
+        connections, the same in every process) received at `log_ns`, deserialised."""
         with self._lock:
             reader = self.reader()
+            conn = reader.connections[conn_id]
             found = [raw for _, _, raw in reader.messages([conn], start=log_ns, stop=log_ns + 1)]
             if ordinal >= len(found):
                 raise DatasetError(
@@ -181,15 +183,16 @@ class BagAccess:
 
 
 class _TopicIndex:
-    """Every message of one topic: connection, receive time and header stamp (s)."""
+    """Every message of one topic: connection (position in the reader's list), receive time
+    (ns), position among that connection's messages at that time, header stamp (s)."""
 
-    def __init__(self, topic: str, msgtype: str, conns: list[Any], log_ns: np.ndarray,
+    def __init__(self, topic: str, msgtype: str, conn: np.ndarray, log_ns: np.ndarray,
                  ordinal: np.ndarray, stamps: np.ndarray) -> None:
-        self.topic, self.msgtype, self.conns = topic, msgtype, conns
+        self.topic, self.msgtype, self.conn = topic, msgtype, conn
         self.log_ns, self.ordinal, self.stamps = log_ns, ordinal, stamps
 
     def take(self, positions: np.ndarray) -> _TopicIndex:
-        return _TopicIndex(self.topic, self.msgtype, [self.conns[p] for p in positions],
+        return _TopicIndex(self.topic, self.msgtype, self.conn[positions],
                            self.log_ns[positions], self.ordinal[positions], self.stamps[positions])
 
 
@@ -211,7 +214,7 @@ class BagSequence(RGBDSequence):
             log_ns = int(ref.log_ns[i])
             where.append(f"{self.path}: topic {ref.topic} message at {log_ns} ns "
                          f"(header {ref.stamps[i]:.6f} s)")
-            msgs.append(self.access.read(ref.conns[i], log_ns, int(ref.ordinal[i])))
+            msgs.append(self.access.read(int(ref.conn[i]), log_ns, int(ref.ordinal[i])))
         rgb = dec.decode_colour(rgb_ref.msgtype, msgs[0], where[0])
         depth = dec.decode_depth(depth_ref.msgtype, msgs[1], self.depth_scale, where[1])
         return rgb, depth, where[0], where[1]
@@ -247,13 +250,14 @@ def _index(access: BagAccess, topic: str) -> _TopicIndex:
     reader = access.reader()
     conns = access.connections(topic)
     msgtype = conns[0].msgtype
+    conn_ids = {(c.id, c.topic): i for i, c in enumerate(reader.connections)}
     seen: dict[tuple[int, int], int] = {}
     rows = []
     for conn, log_ns, raw in reader.messages(conns):
-        key = (conns.index(conn), log_ns)
+        key = (conn_ids[conn.id, conn.topic], log_ns)
         seen[key] = seen.get(key, -1) + 1
         header_ns = dec.stamp_ns(reader.deserialize(raw, msgtype))
-        rows.append((conns.index(conn), log_ns, seen[key], header_ns))
+        rows.append((*key, seen[key], header_ns))
     if not rows:
         raise DatasetError(f"{access.path}: topic {topic} has no messages")
     table = np.array(rows, dtype=np.int64)
@@ -264,7 +268,7 @@ def _index(access: BagAccess, topic: str) -> _TopicIndex:
         header = table[:, 1]
     order = np.argsort(header, kind="stable")
     table, header = table[order], header[order]
-    return _TopicIndex(topic, msgtype, [conns[c] for c in table[:, 0]], table[:, 1],
+    return _TopicIndex(topic, msgtype, table[:, 0], table[:, 1],
                        table[:, 2], header.astype(np.float64) * 1e-9)
 
 

@@ -5,6 +5,7 @@ ten 7-Scenes frames read back exactly; topic detection, pairing tolerance and er
 from __future__ import annotations
 
 import json
+import pickle
 import shutil
 import sys
 from pathlib import Path
@@ -75,6 +76,8 @@ def test_bag_frames_selection_and_topics(bags: dict[str, Path], source: RGBDSequ
     assert np.array_equal(seq[1].rgb, source[5].rgb)
     assert np.array_equal(seq[2].depth, source[8].depth)
     assert seq[0:2][1].index == 5  # a selection of a selection still finds its messages
+    copy = pickle.loads(pickle.dumps(seq))  # e.g. for another process: opens its own reader
+    assert copy.access is not seq.access and np.array_equal(copy[2].rgb, source[8].rgb)
 
 
 def test_dataset_info_on_a_bag(bags: dict[str, Path]) -> None:
