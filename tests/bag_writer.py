@@ -42,8 +42,9 @@ def write_bag(
 ) -> Path:
     """Write `seq` to a "ros1" .bag, a "ros2" sqlite3 folder or an "mcap" ROS 2 file.
 
-    `extra` adds (topic, msgtype) pairs holding a copy of the colour or pose stream
-    (to make detection ambiguous). Depth is converted from metres back to the encoding;
+    `extra` adds (topic, what) pairs, `what` one of `EXTRA` (colour, colour_compressed,
+    mono, depth, info, pose), holding another copy of that stream (for topic detection).
+    Depth is converted from metres back to the encoding;
     `depth_stride` 2 writes every second depth pixel (a depth image not registered to colour).
     `with_tf` adds /tf with two transforms per frame: world -> camera (the ground truth) and
     camera -> camera_optical (identity).
@@ -80,7 +81,7 @@ def write_bag(
         streams.append((names["pose"], "geometry_msgs/msg/PoseStamped"))
     if with_tf:
         streams.append(("/tf", "tf2_msgs/msg/TFMessage"))
-    streams.extend(extra)
+    streams.extend((topic, EXTRA[what]) for topic, what in extra)
 
     writer, serialize = _writer(path, kind, store)
     with writer:
@@ -125,12 +126,33 @@ def write_bag(
                         ("camera", "camera_optical", pose_to_tq(np.eye(4))))
                 ]
                 msgs["/tf"] = T["tf2_msgs/msg/TFMessage"](transforms=transforms)
-            for topic, msgtype in extra:
-                source = names["pose"] if "Pose" in msgtype else names["rgb"]
-                msgs[topic] = msgs[source]
+            for topic, what in extra:
+                if what in ("info", "pose"):
+                    msgs[topic] = msgs[names[what]]
+                elif what == "mono":
+                    grey = np.ascontiguousarray(frame.rgb[:, :, 1])
+                    msgs[topic] = T["sensor_msgs/msg/Image"](
+                        header=header(ns, "ir"), height=grey.shape[0], width=grey.shape[1],
+                        encoding="mono8", is_bigendian=0, step=grey.shape[1], data=grey.ravel())
+                elif what == "depth":
+                    msgs[topic] = _depth(T, header(ns, "color"), frame.depth, seq.depth_scale,
+                                         "16UC1", False)
+                else:
+                    msgs[topic] = _colour(T, header(ns, "color"), frame.rgb,
+                                          what == "colour_compressed")
             for topic, msg in msgs.items():
                 writer.write(conns[topic], ns + LATENCY_NS, serialize(msg, conns[topic].msgtype))
     return path
+
+
+EXTRA = {
+    "colour": "sensor_msgs/msg/Image",
+    "colour_compressed": "sensor_msgs/msg/CompressedImage",
+    "mono": "sensor_msgs/msg/Image",
+    "depth": "sensor_msgs/msg/Image",
+    "info": "sensor_msgs/msg/CameraInfo",
+    "pose": "geometry_msgs/msg/PoseStamped",
+}
 
 
 def _writer(path: Path, kind: str, store: object) -> tuple[object, object]:

@@ -145,8 +145,7 @@ def test_missing_and_wrong_topics(bags: dict[str, Path]) -> None:
 
 def test_ambiguous_topics(source: RGBDSequence, tmp_path: Path) -> None:
     two = write_bag(tmp_path / "two.bag", source[:2], "ros1",
-                    extra=(("/camera2/color/image_raw", "sensor_msgs/msg/Image"),
-                           ("/mocap/pose", "geometry_msgs/msg/PoseStamped")))
+                    extra=(("/camera2/color/image_raw", "colour"), ("/mocap/pose", "pose")))
     with pytest.raises(DatasetError, match=r"two\.bag: 2 candidate colour image topics: "
                        r"/camera/color/image_raw, /camera2/color/image_raw; choose one with "
                        r"--topic-rgb TOPIC"):
@@ -173,6 +172,28 @@ def test_ground_truth_from_tf(source: RGBDSequence, tmp_path: Path) -> None:
         open_sequence(bag, topics={"pose": POSE + ":a:b"})
     seq = open_sequence(bag, topics={"pose": "/tf:/world:camera"})
     np.testing.assert_allclose(seq.gt_poses(), source[:3].gt_poses(), rtol=0, atol=1e-12)
+
+
+def test_detection_in_a_realsense_like_bag(source: RGBDSequence, tmp_path: Path) -> None:
+    """Raw and aligned depth are ambiguous; the colour topic's compressed twin and an infrared
+    stream are not candidates; the camera info beside the chosen depth topic is taken."""
+    aligned = "/camera/aligned_depth_to_color"
+    bag = write_bag(tmp_path / "d435.bag", source[:2], "ros1", extra=(
+        (COLOUR + "/compressed", "colour_compressed"), ("/camera/infra1/image_rect_raw", "mono"),
+        (f"{aligned}/image_raw", "depth"), (f"{aligned}/camera_info", "info"),
+        ("/camera/depth/camera_info", "info")))
+    with pytest.raises(DatasetError, match=r"d435\.bag: 2 candidate depth image topics: "
+                       rf"{aligned}/image_raw, /camera/depth/image_raw; choose one with "
+                       r"--topic-depth TOPIC"):
+        open_sequence(bag)
+    seq = open_sequence(bag, topics={"depth": f"{aligned}/image_raw"})
+    assert seq.topics == {"rgb": COLOUR, "depth": f"{aligned}/image_raw",
+                          "info": f"{aligned}/camera_info", "pose": POSE}
+    seq = open_sequence(bag, topics={"depth": "/camera/depth/image_raw"})
+    assert seq.topics["info"] == "/camera/depth/camera_info"
+    mono = open_sequence(bag, topics={"depth": f"{aligned}/image_raw",
+                                      "rgb": "/camera/infra1/image_rect_raw"})
+    assert np.array_equal(mono[0].rgb[:, :, 0], source[0].rgb[:, :, 1])
 
 
 def test_no_camera_info_needs_intrinsics(source: RGBDSequence, tmp_path: Path) -> None:
