@@ -37,8 +37,9 @@ $(STAMP): pyproject.toml
 	@# torch first and pinned: an unpinned torch pulls a multi-GB CUDA build.
 	$(BIN)/python -m pip install -q "$(TORCH_SPEC)" \
 	  $(if $(TORCH_INDEX_URL),--index-url $(TORCH_INDEX_URL))
-	@# viz: rerun-sdk for `cpslam view` and the demo's demo.rrd (never used by the daemons).
-	$(BIN)/python -m pip install -q -e ".[dev,viz]"
+	@# viz: rerun-sdk for `cpslam view` and the demo's demo.rrd (never used by the daemons);
+	@# bags: rosbags for ROS bag and MCAP input.
+	$(BIN)/python -m pip install -q -e ".[dev,viz,bags]"
 	@touch $(STAMP)
 
 test: $(STAMP)

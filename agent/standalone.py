@@ -10,7 +10,7 @@ from __future__ import annotations
 import logging
 import signal
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -47,16 +47,19 @@ class StandaloneResult:
 
 
 def open_for_config(
-    cfg: CpslamConfig, path: str | Path, fmt: str | None = None, frames: str | None = None
+    cfg: CpslamConfig, path: str | Path, fmt: str | None = None, frames: str | None = None,
+    topics: Mapping[str, str] | None = None,
 ) -> RGBDSequence:
-    """Open a sequence applying the config's camera overrides (intrinsics, depth scale)."""
+    """Open a sequence applying the config's camera overrides (intrinsics, depth scale);
+    `topics` name a bag's topics (see `open_sequence`)."""
     cam = cfg.camera
     overrides = {
         key: getattr(cam, key)
         for key in ("fx", "fy", "cx", "cy", "width", "height", "depth_scale")
         if getattr(cam, key) is not None
     }
-    return open_sequence(path, fmt=fmt, frames=frames, overrides=overrides or None)
+    return open_sequence(path, fmt=fmt, frames=frames, overrides=overrides or None,
+                         topics=topics)
 
 
 def processing_frames(

@@ -22,7 +22,15 @@ from cpslam.common.config.cli import (
     SessionOpt,
     SetOpt,
 )
-from cpslam.common.datasets.cli import FormatOpt, FramesOpt
+from cpslam.common.datasets.cli import (
+    FormatOpt,
+    FramesOpt,
+    TopicDepthOpt,
+    TopicInfoOpt,
+    TopicPoseOpt,
+    TopicRgbOpt,
+    topics_arg,
+)
 
 logger = logging.getLogger("cpslam.agent")
 
@@ -32,7 +40,8 @@ app = App()
 @app.command()
 def agent(
     ctx: typer.Context,
-    seq: Annotated[Path, typer.Option("--seq", help="Sequence folder (any supported format).")],
+    seq: Annotated[Path, typer.Option("--seq", help="Sequence folder (any supported format) or "
+                                                      "a ROS 1/2 bag or MCAP file.")],
     standalone: Annotated[
         bool, typer.Option("--standalone", help="Run without a separate server: odometry, "
                            "mapping and loop closure by an in-process back end (as `cpslam "
@@ -63,6 +72,10 @@ def agent(
     seed: SeedOpt = None,
     frames: FramesOpt = None,
     fmt: FormatOpt = None,
+    topic_rgb: TopicRgbOpt = None,
+    topic_depth: TopicDepthOpt = None,
+    topic_info: TopicInfoOpt = None,
+    topic_pose: TopicPoseOpt = None,
     out: Annotated[Path | None, out_option(
         "Run folder, may be shared with the server and other agents (default: "
         "run.out/run.name, timestamped); RUN/agent_<id>/ follows the overwrite rule.")] = None,
@@ -113,6 +126,8 @@ def agent(
 
       cpslam-agent --seq ../shared/data/7scenes-kitchen-0-299 --standalone --frames 0:100
 
+      cpslam-agent --seq robot.bag --topic-rgb /camera/color/image_raw --standalone
+
       cpslam-agent --seq runs/data/room/agent_0 --standalone --set run.num_threads=1
 
       cpslam-agent --seq data/office0 --standalone --preset paper --device cuda
@@ -149,7 +164,8 @@ def agent(
     from cpslam.agent.standalone import open_for_config, run_standalone
 
     try:
-        sequence = open_for_config(cfg, seq, fmt, frames)
+        topics = topics_arg(topic_rgb, topic_depth, topic_info, topic_pose)
+        sequence = open_for_config(cfg, seq, fmt, frames, topics)
     except DatasetError as err:
         fail(str(err))
     threads = configure_torch(cfg.run.num_threads, cfg.run.deterministic)

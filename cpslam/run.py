@@ -46,7 +46,15 @@ from cpslam.common.cli import (
     stop_on_signals,
 )
 from cpslam.common.config.cli import ConfigOpt, DeviceOpt, PresetOpt, SeedOpt, SetOpt
-from cpslam.common.datasets.cli import FormatOpt, FramesOpt
+from cpslam.common.datasets.cli import (
+    FormatOpt,
+    FramesOpt,
+    TopicDepthOpt,
+    TopicInfoOpt,
+    TopicPoseOpt,
+    TopicRgbOpt,
+    topics_arg,
+)
 from cpslam.protocol import keys
 
 if TYPE_CHECKING:
@@ -285,8 +293,8 @@ def _odometry_trajectories(server: Any) -> dict[str, tuple[np.ndarray, np.ndarra
 
 
 def run(
-    seq: Annotated[list[Path], typer.Option("--seq", help="Sequence folder of one agent "
-                                            "(repeat for more agents).")],
+    seq: Annotated[list[Path], typer.Option("--seq", help="Sequence folder or bag of one "
+                                            "agent (repeat for more agents).")],
     preset: PresetOpt = "cpu",
     config_file: ConfigOpt = None,
     sets: SetOpt = None,
@@ -294,6 +302,10 @@ def run(
     seed: SeedOpt = None,
     frames: FramesOpt = None,
     fmt: FormatOpt = None,
+    topic_rgb: TopicRgbOpt = None,
+    topic_depth: TopicDepthOpt = None,
+    topic_info: TopicInfoOpt = None,
+    topic_pose: TopicPoseOpt = None,
     out: Annotated[Path | None, out_option(
         "Run folder (default: run.out/run.name, timestamped).")] = None,
     overwrite: OverwriteOpt = False,
@@ -303,7 +315,7 @@ def run(
 
     One agent per --seq, ids 0, 1, …; agents that see the same place merge into one group
     (one frame, shared decoders). With one --seq: single-agent SLAM with loop closure.
-    --frames applies to every sequence.
+    --frames and --topic-* apply to every sequence.
 
     Writes RUN/config.yaml, RUN/agent_<id>/ (as cpslam-agent --standalone),
     RUN/trajectories/agent_<id>_local.tum (own frame) and _global.tum (group frame),
@@ -319,6 +331,8 @@ def run(
       cpslam run --seq data/room-loop/agent_0 --preset cpu --out runs/loop
 
       cpslam run --seq data/room-loop/agent_0 --frames 0:150 --seed 1 --out runs/loop -v --overwrite
+
+      cpslam run --seq robot1.mcap --seq robot2.mcap --topic-depth /camera/depth/image_raw
     """
     from cpslam.common.config.cli import config_or_exit
     from cpslam.common.datasets import DatasetError
@@ -336,7 +350,8 @@ def run(
     from cpslam.agent.standalone import open_for_config
 
     try:
-        sequences = [open_for_config(cfg, path, fmt, frames) for path in seq]
+        topics = topics_arg(topic_rgb, topic_depth, topic_info, topic_pose)
+        sequences = [open_for_config(cfg, path, fmt, frames, topics) for path in seq]
     except DatasetError as err:
         fail(str(err))
     configure_torch(cfg.run.num_threads, cfg.run.deterministic)

@@ -1,4 +1,5 @@
-"""RGB-D sequence loaders: Replica (NICE-SLAM / CP-SLAM layout), TUM RGB-D, 7-Scenes, ScanNet.
+"""RGB-D sequence loaders: Replica (NICE-SLAM / CP-SLAM layout), TUM RGB-D, 7-Scenes, ScanNet,
+ROS 1 / ROS 2 bags and MCAP files.
 
     seq = open_sequence("data/Replica/room0", frames="0:500")
     for frame in seq:  # RGBDFrame: rgb uint8 [H, W, 3], depth float32 metres [H, W]

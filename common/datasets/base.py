@@ -11,7 +11,7 @@ import re
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import overload
+from typing import Any, overload
 
 import cv2
 import numpy as np
@@ -77,7 +77,8 @@ class RGBDSequence:
             path: the sequence root (for messages and summaries).
             format: the format's name, e.g. "replica".
             intrinsics: the depth camera (colour is assumed registered to depth).
-            indices, timestamps, rgb_paths, depth_paths: one entry per frame, in order.
+            indices, timestamps, rgb_paths, depth_paths: one entry per frame, in order (the
+                file each image is read from).
             depth_scale: raw depth units per metre (depth_m = raw / depth_scale).
             fps: nominal frame rate (Hz).
             pose_reader: ground truth by frame index; None when the sequence has none.
@@ -172,19 +173,18 @@ class RGBDSequence:
             raise IndexError(f"frame position {i} out of range for {n} frames")
         i %= n
         index = int(self.indices[i])
-        depth = read_depth(self.depth_paths[i], self.depth_scale, self.invalid_depth_values)
-        rgb = read_rgb(self.rgb_paths[i])
+        rgb, depth, rgb_where, depth_where = self._read_images(i)
         if rgb.shape[:2] != depth.shape:
             if not self.resize_rgb_to_depth:
                 raise DatasetError(
-                    f"{self.rgb_paths[i]}: colour is {_size(rgb)} but its depth "
-                    f"{self.depth_paths[i]} is {_size(depth)}; they must match"
+                    f"{rgb_where}: colour is {_size(rgb)} but its depth "
+                    f"{depth_where} is {_size(depth)}; they must match"
                 )
             rgb = cv2.resize(rgb, (depth.shape[1], depth.shape[0]), interpolation=cv2.INTER_AREA)
         expected = (self.intrinsics.height, self.intrinsics.width)
         if depth.shape != expected:
             raise DatasetError(
-                f"{self.depth_paths[i]}: image is {_size(depth)} but the intrinsics say "
+                f"{depth_where}: image is {_size(depth)} but the intrinsics say "
                 f"{expected[1]}x{expected[0]}; fix width/height (camera.yaml) or the data"
             )
         gt_pose = self._pose_reader(index) if self._pose_reader is not None else None
@@ -196,8 +196,22 @@ class RGBDSequence:
 
     # -- internals ------------------------------------------------------------------------
 
+    def _read_images(self, i: int) -> tuple[np.ndarray, np.ndarray, str, str]:
+        """Colour (uint8 RGB) and depth (float32 m) at position i, and where each came from.
+
+        Formats that do not store one image per file (bags) override this and
+        `_subset_args`.
+        """
+        depth = read_depth(self.depth_paths[i], self.depth_scale, self.invalid_depth_values)
+        rgb = read_rgb(self.rgb_paths[i])
+        return rgb, depth, str(self.rgb_paths[i]), str(self.depth_paths[i])
+
     def _subset(self, positions: np.ndarray) -> RGBDSequence:
-        return RGBDSequence(
+        return type(self)(**self._subset_args(positions))
+
+    def _subset_args(self, positions: np.ndarray) -> dict[str, Any]:
+        """Constructor arguments of the sequence of the frames at `positions`."""
+        return dict(
             path=self.path,
             format=self.format,
             intrinsics=self.intrinsics,
@@ -372,6 +386,23 @@ def pair_colour_depth(
             f"colour/depth counts disagree ({len(colour)} vs {len(depth)}): " + "; ".join(parts)
         )
     return sorted(colour)
+
+
+def nearest_within(query: np.ndarray, stamps: np.ndarray, max_dt: float) -> np.ndarray:
+    """For each query time, the index of the nearest of `stamps` (any order), or -1 when that
+    is farther than `max_dt` seconds. Several queries may get the same index."""
+    stamps = np.asarray(stamps, dtype=np.float64)
+    query = np.asarray(query, dtype=np.float64)
+    if len(stamps) == 0:
+        return np.full(len(query), -1, dtype=np.int64)
+    order = np.argsort(stamps, kind="stable")
+    ordered = stamps[order]
+    k = np.searchsorted(ordered, query)
+    before = np.clip(k - 1, 0, len(ordered) - 1)
+    after = np.clip(k, 0, len(ordered) - 1)
+    best = np.where(np.abs(ordered[before] - query) <= np.abs(ordered[after] - query), before,
+                    after)
+    return np.where(np.abs(ordered[best] - query) <= max_dt, order[best], -1)
 
 
 def _size(img: np.ndarray) -> str:

@@ -3,7 +3,9 @@
 The lead's umbrella CLI registers `info` as a command; heavy imports stay inside functions so
 that `cpslam --help` does not pay for them. `FormatOpt` and `FramesOpt` are the options of
 every command that opens a sequence folder (also `cpslam eval ate`), so the flags read the
-same everywhere; both are passed on to `open_sequence` as they are.
+same everywhere; both are passed on to `open_sequence` as they are. The `Topic*Opt` options
+name a bag's topics (`cpslam dataset info`, `cpslam-agent`, `cpslam run`); `topics_arg`
+turns them into `open_sequence`'s `topics`.
 """
 
 from __future__ import annotations
@@ -21,8 +23,8 @@ if TYPE_CHECKING:
 
 FormatOpt = Annotated[
     str | None,
-    typer.Option("--format", "-f", help="Dataset format: replica, tum, 7scenes or scannet "
-                 "(default: detect from the folder's layout)."),
+    typer.Option("--format", "-f", help="Dataset format: replica, tum, 7scenes, scannet or bag "
+                 "(default: detect from the folder's layout or the bag's file name)."),
 ]
 FramesOpt = Annotated[
     str | None,
@@ -30,9 +32,41 @@ FramesOpt = Annotated[
                  "e.g. 0:300 or ::2 (frames keep their own indices and timestamps)."),
 ]
 
+TopicRgbOpt = Annotated[
+    str | None,
+    typer.Option("--topic-rgb", help="Bags: colour topic, sensor_msgs/Image or "
+                 "CompressedImage (default: the only colour image topic)."),
+]
+TopicDepthOpt = Annotated[
+    str | None,
+    typer.Option("--topic-depth", help="Bags: depth topic, Image 16UC1/32FC1 or "
+                 "CompressedImage compressedDepth (default: the only depth image topic)."),
+]
+TopicInfoOpt = Annotated[
+    str | None,
+    typer.Option("--topic-info", help="Bags: sensor_msgs/CameraInfo topic for the intrinsics "
+                 "(default: the only one, or the one beside the depth topic)."),
+]
+TopicPoseOpt = Annotated[
+    str | None,
+    typer.Option("--topic-pose", help="Bags: ground-truth pose topic (PoseStamped, "
+                 "PoseWithCovarianceStamped, TransformStamped or Odometry; tf as "
+                 "/tf:PARENT:CHILD), for evaluation only; 'none' reads none (default: the "
+                 "only pose topic, if any)."),
+]
+
+
+def topics_arg(
+    rgb: str | None, depth: str | None, info: str | None, pose: str | None
+) -> dict[str, str] | None:
+    """The `--topic-*` options as `open_sequence(topics=...)`, None when none is given."""
+    given = {"rgb": rgb, "depth": depth, "info": info, "pose": pose}
+    return {k: v for k, v in given.items() if v is not None} or None
+
 
 def info(
-    path: Annotated[Path, typer.Argument(help="Sequence folder.", show_default=False)],
+    path: Annotated[Path, typer.Argument(help="Sequence folder, or a bag (ROS 1 .bag, .mcap, "
+                                         ".db3, ROS 2 bag folder).", show_default=False)],
     format: FormatOpt = None,
     frames: FramesOpt = None,
     samples: Annotated[
@@ -44,6 +78,10 @@ def info(
         typer.Option("--camera", help="Override a camera.yaml key, e.g. --camera fx=525 "
                      "(fx, fy, cx, cy, width, height, depth_scale, fps; repeatable)."),
     ] = None,
+    topic_rgb: TopicRgbOpt = None,
+    topic_depth: TopicDepthOpt = None,
+    topic_info: TopicInfoOpt = None,
+    topic_pose: TopicPoseOpt = None,
 ) -> None:
     """Describe an RGB-D sequence: format, frames, resolution, intrinsics, depth, ground truth.
 
@@ -54,12 +92,16 @@ def info(
       cpslam dataset info ../shared/data/7scenes-kitchen-0-299 --frames 0:100 --json
 
       cpslam dataset info my_tum_sequence --camera fx=525 --camera fy=525 --camera cx=319.5
+
+      cpslam dataset info robot.bag --topic-rgb /camera/color/image_raw --frames 0:300
     """
     from cpslam.common.datasets import DatasetError, open_sequence
 
     try:
         overrides = _parse_camera(camera or [])
-        sequence = open_sequence(path, fmt=format, frames=frames, overrides=overrides or None)
+        topics = topics_arg(topic_rgb, topic_depth, topic_info, topic_pose)
+        sequence = open_sequence(path, fmt=format, frames=frames, overrides=overrides or None,
+                                 topics=topics)
         summary = summarize(sequence, samples=samples)
     except DatasetError as e:
         fail(str(e))
@@ -99,7 +141,9 @@ def summarize(sequence: RGBDSequence, samples: int = 5) -> dict[str, Any]:
         gt["trajectory_length_m"] = float(np.linalg.norm(np.diff(xyz, axis=0), axis=1).sum())
 
     camera = sequence.intrinsics
+    topics = getattr(sequence, "topics", None)  # bags only
     return {
+        **({"topics": topics} if topics is not None else {}),
         "format": sequence.format,
         "path": str(sequence.path),
         "frames": n,
@@ -138,6 +182,11 @@ def format_summary(summary: dict[str, Any]) -> str:
     rows = [
         ("format", summary["format"]),
         ("path", summary["path"]),
+        *(
+            [("topics", ", ".join(f"{k} {v}" for k, v in summary["topics"].items() if v))]
+            if "topics" in summary
+            else []
+        ),
         (
             "frames",
             f"{summary['frames']} (indices {summary['first_index']}.."

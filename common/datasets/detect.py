@@ -7,7 +7,7 @@ from collections.abc import Mapping
 from pathlib import Path
 
 from cpslam.common.camera import Intrinsics
-from cpslam.common.datasets import replica, scannet, sevenscenes, tum
+from cpslam.common.datasets import bag, replica, scannet, sevenscenes, tum
 from cpslam.common.datasets.base import DatasetError, RGBDSequence, parse_frames
 from cpslam.common.datasets.sidecar import Sidecar
 
@@ -19,13 +19,15 @@ FORMATS = {
     tum.NAME: tum,
     sevenscenes.NAME: sevenscenes,
     scannet.NAME: scannet,
+    bag.NAME: bag,
 }
 
 _LAYOUTS = (
     "replica (results/ with frame*.jpg|png and depth*.png), "
     "tum (rgb.txt and depth.txt), "
     "7scenes (frame-*.color.* and frame-*.depth.png), "
-    "scannet (color/ and depth/)"
+    "scannet (color/ and depth/), "
+    "bag (a ROS 1 .bag, an .mcap or .db3 file, or a ROS 2 bag folder with metadata.yaml)"
 )
 
 
@@ -36,19 +38,23 @@ def open_sequence(
     intrinsics: Intrinsics | None = None,
     overrides: Mapping[str, float | int | None] | None = None,
     max_dt: float = tum.DEFAULT_MAX_DT,
+    topics: Mapping[str, str | None] | None = None,
 ) -> RGBDSequence:
-    """Open an RGB-D sequence folder lazily (index files only; images load on `[i]`).
+    """Open an RGB-D sequence folder or bag lazily (index only; images load on `[i]`).
 
     Args:
-        path: the sequence folder.
-        fmt: one of `FORMATS` ("replica", "tum", "7scenes", "scannet"); None detects it.
+        path: the sequence folder, or a bag (ROS 1 .bag, .mcap, .db3, ROS 2 bag folder).
+        fmt: one of `FORMATS` ("replica", "tum", "7scenes", "scannet", "bag"); None
+            detects it.
         frames: a slice or "START:STOP[:STEP]" over the sequence's frame list; selected
             frames keep their own indices and timestamps.
         intrinsics: complete intrinsics that override every other source.
         overrides: camera.yaml keys (fx, fy, cx, cy, width, height, depth_scale, fps) that
             take precedence over the sequence's camera.yaml; None values are ignored (the
             config's `camera.fx` ... `camera.depth_scale` can be passed with their nulls).
-        max_dt: TUM only: the largest colour/depth and colour/ground-truth time gap (s).
+        max_dt: TUM and bags: the largest colour/depth and colour/ground-truth time gap (s).
+        topics: bags only: "rgb", "depth", "info", "pose" → topic name (None entries, or
+            no mapping, detect them; pose "none" reads no ground truth).
 
     Raises:
         DatasetError: the folder is missing, no layout matches, or its files are not as the
@@ -59,15 +65,25 @@ def open_sequence(
     root = Path(path).expanduser()
     if not root.exists():
         raise DatasetError(f"{root}: no such folder")
-    if not root.is_dir():
-        raise DatasetError(f"{root}: not a folder (expected a sequence folder)")
+    if not root.is_dir() and not bag.looks_like(root):
+        raise DatasetError(
+            f"{root}: not a folder (expected a sequence folder, or a bag: "
+            + ", ".join(bag.SUFFIXES) + " file or ROS 2 bag folder)"
+        )
     name = detect_format(root) if fmt is None else _format_name(fmt)
-    sidecar = Sidecar.read(root)
+    topics = {k: v for k, v in (topics or {}).items() if v is not None}
+    if topics and name != bag.NAME:
+        raise DatasetError(
+            f"{root}: topics ({', '.join(topics)}) apply to bags only, this is a {name} sequence"
+        )
+    sidecar = Sidecar.read(root) if root.is_dir() else Sidecar()
     if overrides:
         sidecar = sidecar.updated(overrides, "camera overrides")
     module = FORMATS[name]
     if module is tum:
         sequence = tum.load(root, sidecar, intrinsics, max_dt=max_dt)
+    elif module is bag:
+        sequence = bag.load(root, sidecar, intrinsics, topics=topics, max_dt=max_dt)
     else:
         sequence = module.load(root, sidecar, intrinsics)
     logger.info("opened %s sequence %s: %d frames", name, root, len(sequence))
@@ -84,7 +100,7 @@ def detect_format(root: Path) -> str:
 
 def _format_name(fmt: str) -> str:
     name = fmt.strip().lower().replace("-", "")
-    aliases = {"sevenscenes": "7scenes", "7scene": "7scenes"}
+    aliases = {"sevenscenes": "7scenes", "7scene": "7scenes", "rosbag": "bag", "mcap": "bag"}
     name = aliases.get(name, name)
     if name not in FORMATS:
         raise DatasetError(f"unknown dataset format {fmt!r}; expected one of " + ", ".join(FORMATS))

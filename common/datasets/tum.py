@@ -18,7 +18,13 @@ from pathlib import Path
 import numpy as np
 
 from cpslam.common.camera import Intrinsics
-from cpslam.common.datasets.base import DatasetError, RGBDSequence, check_pose, image_size
+from cpslam.common.datasets.base import (
+    DatasetError,
+    RGBDSequence,
+    check_pose,
+    image_size,
+    nearest_within,
+)
 from cpslam.common.datasets.sidecar import Sidecar, resolve_intrinsics
 from cpslam.common.geometry import pose_from_tq
 
@@ -160,20 +166,8 @@ def _match_ground_truth(
             raise DatasetError(f"{path}:{lineno}: non-finite value or zero quaternion")
         stamps.append(values[0])
         poses.append(check_pose(pose_from_tq(values[1:4], values[4:]), f"{path}:{lineno}"))
-    if not stamps:
-        return {}
-    gt_stamps = np.asarray(stamps)
-    order = np.argsort(gt_stamps, kind="stable")
-    gt_sorted = gt_stamps[order]
-    matched = {}
-    for row in rows:
-        t = frame_stamps[row]
-        k = int(np.searchsorted(gt_sorted, t))
-        near = [c for c in (k - 1, k) if 0 <= c < len(gt_sorted)]
-        best = min(near, key=lambda c: abs(gt_sorted[c] - t))
-        if abs(gt_sorted[best] - t) <= max_dt:
-            matched[row] = poses[int(order[best])]
-    return matched
+    nearest = nearest_within(frame_stamps[rows], np.asarray(stamps), max_dt)
+    return {row: poses[k] for row, k in zip(rows, nearest, strict=True) if k >= 0}
 
 
 _COMMENT = re.compile(r"^\s*(#|$)")

@@ -1,6 +1,7 @@
 """Where a trajectory to evaluate comes from: a TUM file, a run folder or a dataset folder.
 
-- a file: read as TUM (``timestamp tx ty tz qx qy qz qw``);
+- a file: read as TUM (``timestamp tx ty tz qx qy qz qw``), unless it is a bag (``.bag``,
+  ``.mcap``, ``.db3``), which is a dataset (its pose topic is the ground truth);
 - a folder holding ``trajectory.tum`` at its top, or exactly one ``agent_*/trajectory.tum``
   (a cpslam run); several agents' files are an error that lists them;
 - otherwise a dataset folder: its timestamps and ground-truth poses, read through
@@ -58,12 +59,14 @@ def load_trajectory(
 
 
 def locate_trajectory(path: str | Path) -> tuple[str, Path]:
-    """``("tum", file)`` or ``("dataset", folder)`` for what ``path`` names."""
+    """``("tum", file)`` or ``("dataset", folder or bag)`` for what ``path`` names."""
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such file or folder")
     if path.is_file():
-        return "tum", path
+        from cpslam.common.datasets.bag import SUFFIXES as BAG_SUFFIXES
+
+        return ("dataset" if path.suffix.lower() in BAG_SUFFIXES else "tum"), path
     top = path / TRAJECTORY_NAME
     if top.is_file():
         return "tum", top
