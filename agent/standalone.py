@@ -8,7 +8,7 @@ the user interrupts it (Ctrl-C or SIGTERM).
 from __future__ import annotations
 
 import logging
-import signal
+import threading
 import time
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field, replace
@@ -87,8 +87,13 @@ def run_standalone(
     agent_id: str = "0",
     resume: Path | None = None,
     show_progress: bool = True,
+    stop: threading.Event | None = None,
 ) -> StandaloneResult:
-    """Run the odometry over `seq` and write `run_dir/agent_<id>/…` and `run_dir/config.yaml`."""
+    """Run the odometry over `seq` and write `run_dir/agent_<id>/…` and `run_dir/config.yaml`.
+
+    `stop` (set by a signal handler: `common.cli.stop_on_signals`) ends the run after the
+    frame in progress; what was done is written and the result says it was interrupted. A
+    frame is never cut in half, so the trajectory, the map and the metrics agree."""
     import torch
 
     from cpslam.agent.odometry import Odometry
@@ -114,21 +119,18 @@ def run_standalone(
     results: list[FrameResult] = []
     interrupted = False
     t0 = time.perf_counter()
-    previous = signal.signal(signal.SIGTERM, _raise_interrupt)
-    try:
-        with make_progress(disable=not show_progress) as bar:
-            task = bar.add_task(f"agent {agent_id}", total=len(seq) - start, info="")
-            for frame in frames:
-                result = odometry.step(frame)
-                results.append(result)
-                fps = len(results) / max(time.perf_counter() - t0, 1e-9)
-                bar.update(task, advance=1, info=f"frame {result.index}  {fps:.2f} fps  "
-                           f"loss {result.track_loss:.4f}  points {result.n_points}")
-    except KeyboardInterrupt:
-        interrupted = True
-        logger.warning("interrupted after %d frames: saving what exists", len(results))
-    finally:
-        signal.signal(signal.SIGTERM, previous)
+    with make_progress(disable=not show_progress) as bar:
+        task = bar.add_task(f"agent {agent_id}", total=len(seq) - start, info="")
+        for frame in frames:
+            if stop is not None and stop.is_set():
+                interrupted = True
+                logger.warning("interrupted after %d frames: saving what exists", len(results))
+                break
+            result = odometry.step(frame)
+            results.append(result)
+            fps = len(results) / max(time.perf_counter() - t0, 1e-9)
+            bar.update(task, advance=1, info=f"frame {result.index}  {fps:.2f} fps  "
+                       f"loss {result.track_loss:.4f}  points {result.n_points}")
     odometry.drain()  # the mapping calls still running belong to the run
     wall = time.perf_counter() - t0
     write_agent_outputs(odometry, agent_dir, results, wall, interrupted, device)
@@ -214,7 +216,3 @@ def frame_metrics(
 def _finite(value: float) -> float | None:
     """JSON has no NaN: a figure that was not measured is null."""
     return float(value) if np.isfinite(value) else None
-
-
-def _raise_interrupt(signum: int, frame: object) -> None:
-    raise KeyboardInterrupt(f"signal {signum}")

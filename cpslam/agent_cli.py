@@ -184,8 +184,11 @@ def agent(
     if loops:
         raise typer.Exit(_with_loops(cfg, sequence, agent_id, run_dir, torch_device,
                                      not no_progress))
-    result = run_standalone(cfg, sequence, run_dir, torch_device, agent_id=agent_id,
-                            resume=resume, show_progress=not no_progress)
+    from cpslam.common.cli import stop_on_signals
+
+    with stop_on_signals() as stop:
+        result = run_standalone(cfg, sequence, run_dir, torch_device, agent_id=agent_id,
+                                resume=resume, show_progress=not no_progress, stop=stop)
     typer.echo(f"{result.frames_done}/{result.frames_total} frames in {result.wall_time_s:.1f} s "
                f"→ {result.agent_dir}")
     if result.interrupted:
