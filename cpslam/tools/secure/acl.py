@@ -10,7 +10,9 @@ and everything else is denied:
   presence. It cannot put on other agents' keys, on ``server/…`` (acks, updates, control) or
   query the status;
 - the operator may query ``server/status``, put on ``server/control`` (finalise, shutdown)
-  and watch the server's presence, nothing else.
+  and watch the server's presence, nothing else;
+- everyone receives subscriber declarations (key expressions only: Zenoh clients need them
+  to send) and the server's presence token (``alive/server``), no one another peer's.
 
 The key expressions come from `cpslam.protocol.keys`; "ingress" is what a peer sends the
 router, "egress" what the router forwards to it. The server's own session is local to the
@@ -91,20 +93,22 @@ def access_control(session: str, agent_ids: list[str], operators: list[str]) -> 
         keys.check_id(name, "certificate name")
     if len(set(names)) != len(names):
         raise ValueError(f"agent and operator names must be distinct, got {names}")
+    # A Zenoh client's declared publisher sends only while it knows of a matching subscriber,
+    # so subscriber declarations (key expressions, no data) must reach every peer; Zenoh checks
+    # a declared wildcard such as agent/*/* against whole rules, so this cannot be narrowed
+    # to a peer's own keys. Presence: only the server's token (which peers wait for).
     base = _base(session)
-    # Declarations and liveliness tokens the router sends a peer carry key expressions, not
-    # data; a client needs them to learn that someone subscribes (Zenoh clients drop puts
-    # nobody wants) and that the server is alive. Everyone may receive them.
-    shared = _rule("everyone: declarations", "egress",
-                   ["declare_subscriber", "declare_queryable", "liveliness_token"],
-                   [f"{base}/**"])
-    rules, subjects, policies = [shared], [], []
+    shared = [_rule("everyone: subscriber declarations", "egress", ["declare_subscriber"],
+                    [f"{base}/**"]),
+              _rule("everyone: server presence", "egress", ["liveliness_token"],
+                    [_keys_for(session, keys.alive_server)])]
+    rules, subjects, policies = [*shared], [], []
     for name, own in [*((a, _agent_rules(session, a)) for a in agent_ids),
                       *((o, _operator_rules(session, o)) for o in operators)]:
         subject = f"cn {name}"
         subjects.append({"id": subject, "cert_common_names": [name]})
         rules.extend(own)
         policies.append({"id": f"policy {name}", "subjects": [subject],
-                         "rules": [shared["id"], *(rule["id"] for rule in own)]})
+                         "rules": [*(rule["id"] for rule in (*shared, *own))]})
     return {"enabled": True, "default_permission": "deny", "rules": rules,
             "subjects": subjects, "policies": policies}

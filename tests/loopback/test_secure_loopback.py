@@ -62,8 +62,8 @@ def _keyframe(agent: str, seq: int) -> bytes:
     # Orthogonal descriptors per agent: no loop candidate, so no image queries.
     descriptor = np.zeros(64, np.float32)
     descriptor[int(agent[-1])] = 1.0
-    return encode(KeyframeMsg(agent_id=agent, seq=seq, kf_id=0, frame_index=0, stamp=0.0,
-                              T_world_cam=np.eye(4), descriptor=descriptor))
+    return encode(KeyframeMsg(agent_id=agent, seq=seq, kf_id=seq, frame_index=seq,
+                              stamp=float(seq), T_world_cam=np.eye(4), descriptor=descriptor))
 
 
 def _agents(bus: ZenohBus) -> dict:
@@ -129,6 +129,12 @@ def test_certificates_bind_identities(tmp_path: Path, tls_endpoint: str, bundle:
         a1.publish(keys.agent_keyframe(SESSION, "agent-1"), _keyframe("agent-1", 0))
         wait_until("agent-1's own keyframe to arrive",
                    lambda: _agents(operator).get("agent-1", {}).get("keyframes", 0) >= 1,
+                   30, server, every=0.3)
+        # A second one, once Zenoh has told the client who subscribes: a declared publisher
+        # sends only to known subscribers, so the ACL must let those declarations through.
+        a1.publish(keys.agent_keyframe(SESSION, "agent-1"), _keyframe("agent-1", 1))
+        wait_until("agent-1's second keyframe to arrive",
+                   lambda: _agents(operator).get("agent-1", {}).get("keyframes", 0) >= 2,
                    30, server, every=0.3)
         assert "agent-0" not in _agents(operator), "a keyframe forged as agent-0 was accepted"
 
