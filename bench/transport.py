@@ -9,8 +9,10 @@
 
 Both processes use TCP on 127.0.0.1 with shared memory off (what two machines would see,
 minus the wire), unless --shm. This process listens in router mode, the peer connects as client.
+With --tls DIR (a folder made by `cpslam secure init`) the link is Zenoh mutual TLS instead:
+this process listens with DIR/server.pem, the peer presents DIR/agent-0.pem.
 
-Usage: python bench/transport.py [--quick] [--shm]
+Usage: python bench/transport.py [--quick] [--shm] [--tls DIR]
 """
 
 from __future__ import annotations
@@ -25,9 +27,10 @@ import subprocess
 import sys
 import threading
 import time
+from pathlib import Path
 
 from cpslam import protocol
-from cpslam.common.bus import Sample, ZenohBus
+from cpslam.common.bus import Sample, ZenohBus, ZenohSecurity
 from cpslam.protocol.samples import sample
 
 ALIVE = "bench/alive/peer"
@@ -38,18 +41,23 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer repetitions")
     parser.add_argument("--shm", action="store_true", help="allow Zenoh shared memory")
+    parser.add_argument("--tls", type=Path, metavar="DIR",
+                        help="mutual TLS with the certificates of `cpslam secure init` in DIR")
     parser.add_argument("--peer", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--connect", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.peer:
-        run_peer(args.connect, args.shm)
+        run_peer(args.connect, args.shm, args.tls)
         return
 
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    bus = ZenohBus(mode="router", listen=[endpoint], shared_memory=args.shm)
+    # "localhost" is a name in the server certificate of `cpslam secure init`.
+    endpoint = f"tls/localhost:{free_port()}" if args.tls else f"tcp/127.0.0.1:{free_port()}"
+    bus = ZenohBus(mode="router", listen=[endpoint], shared_memory=args.shm,
+                   security=security(args.tls, "server"))
     present = threading.Event()
     bus.watch_liveliness(ALIVE, on_join=lambda key: present.set())
-    cmd = [sys.executable, __file__, "--peer", "--connect", endpoint]
+    cmd = [sys.executable, __file__, "--peer", "--connect", endpoint,
+           *(["--tls", str(args.tls)] if args.tls else [])]
     peer = subprocess.Popen(cmd + (["--shm"] if args.shm else []), stdin=subprocess.PIPE)
     try:
         if not present.wait(30.0):
@@ -57,7 +65,8 @@ def main() -> None:
         scale = 0.25 if args.quick else 1.0
         report = {
             "machine": machine(),
-            "transport": {"tcp": endpoint, "shared_memory": args.shm},
+            "transport": {"endpoint": endpoint, "mutual_tls": args.tls is not None,
+                          "shared_memory": args.shm},
             "latency_ms": {
                 label: latency(bus, size, max(5, int(rounds * scale)))
                 for label, size, rounds in (
@@ -86,8 +95,17 @@ def main() -> None:
 # -- the peer process --------------------------------------------------------------------------
 
 
-def run_peer(connect: str, shm: bool) -> None:
-    bus = ZenohBus(mode="client", connect=[connect], shared_memory=shm)
+def security(folder: Path | None, name: str) -> ZenohSecurity | None:
+    """Mutual TLS with `name`'s certificate from a `cpslam secure init` folder (None: TCP)."""
+    if folder is None:
+        return None
+    return ZenohSecurity(root_ca=folder / "ca.pem", cert=folder / f"{name}.pem",
+                         key=folder / f"{name}-key.pem", mtls=True)
+
+
+def run_peer(connect: str, shm: bool, tls: Path | None) -> None:
+    bus = ZenohBus(mode="client", connect=[connect], shared_memory=shm,
+                   security=security(tls, "agent-0"))
     counts = {"messages": 0, "bytes": 0}
     image = protocol.encode(sample("keyframe_image", width=640, height=480, rgb_codec="png"))
 

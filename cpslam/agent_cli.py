@@ -149,6 +149,8 @@ def agent(
         fail("--connect/--session make no sense with --standalone")
     cfg = config_or_exit(preset, config_file, [*(sets or []), *transport_sets(
         session, None, connect)], device, seed)
+    if not standalone and cfg.transport.tls_cert is not None:
+        _check_certificate(cfg.transport.tls_cert, agent_id)
     try:
         torch_device = resolve_device(cfg.run.device)
     except ValueError as err:
@@ -224,6 +226,20 @@ def _networked(cfg, sequence, agent_id: str, run_dir: Path, device: str, wait_ti
     with stop_on_signals() as stop:
         return run_networked(cfg, sequence, agent_id, run_dir, device, wait_timeout,
                              ack_timeout, show_progress, stop)
+
+
+def _check_certificate(cert: Path, agent_id: str) -> None:
+    """With mutual TLS the server's access control knows an agent by its certificate's common
+    name: a different --agent-id would be refused message by message, so refuse it here."""
+    from cpslam.common.bus.zenoh_security import certificate_name
+
+    try:
+        name = certificate_name(cert)
+    except ValueError as err:
+        fail(str(err))
+    if name != agent_id:
+        fail(f"--agent-id {agent_id!r} differs from the name {name!r} of transport.tls_cert "
+             f"{cert}: the server's access control would refuse this agent's messages")
 
 
 def main() -> None:

@@ -18,6 +18,7 @@ from cpslam.server.client import status as server_status
 from cpslam.tools.eval.cli import ate as eval_ate
 from cpslam.tools.eval.recon_cli import recon as eval_recon
 from cpslam.tools.render import render
+from cpslam.tools.secure.cli import init as secure_init
 from cpslam.tools.synth.cli import synth as dataset_synth
 from cpslam.tools.view.cli import view
 
@@ -38,6 +39,9 @@ app.add_typer(eval_app, name="eval")
 config_app = App(no_args_is_help=True, help="Show the effective configuration and presets.\n\n"
                  "Examples:\n\n  cpslam config show --preset paper\n\n  cpslam config presets")
 app.add_typer(config_app, name="config")
+secure_app = App(no_args_is_help=True, help="Certificates and access control for a deployment.\n\n"
+                 "Examples:\n\n  cpslam secure init --agents 2 --out secure")
+app.add_typer(secure_app, name="secure")
 
 dataset_app.command("info")(dataset_info)
 dataset_app.command("synth")(dataset_synth)
@@ -51,6 +55,7 @@ app.command("demo")(demo)
 app.command("status")(server_status)
 app.command("finalise")(server_finalise)
 config_app.command("presets")(config_presets)
+secure_app.command("init")(secure_init)
 
 
 @app.callback()

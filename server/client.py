@@ -9,12 +9,13 @@ from __future__ import annotations
 import json
 import logging
 import time
+from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
 import typer
 
 from cpslam.common.cli import ExitCode, JsonOpt, fail
-from cpslam.common.config.cli import ConnectOpt, SessionOpt
+from cpslam.common.config.cli import ConfigOpt, ConnectOpt, SessionOpt
 
 if TYPE_CHECKING:
     from cpslam.common.bus import Bus
@@ -31,6 +32,7 @@ def status(
     session: SessionOpt = None,
     as_json: JsonOpt = False,
     timeout: TimeoutOpt = 10.0,
+    config_file: ConfigOpt = None,
 ) -> None:
     """Print a running server's agents, groups, loops and federated rounds.
 
@@ -41,8 +43,10 @@ def status(
       cpslam status --connect tcp/127.0.0.1:7447
 
       cpslam status --connect tcp/10.0.0.5:7447 --session lab --json
+
+      cpslam status --config secure/operator.yaml
     """
-    cfg, bus = _client(connect, session, timeout)
+    cfg, bus = _client(connect, session, timeout, config_file)
     with bus:
         summary = query_status(bus, cfg.transport.session, timeout)
     if summary is None:
@@ -79,6 +83,7 @@ def finalise(
     wait: Annotated[bool, typer.Option(
         "--wait/--no-wait", help="Wait until the server has finished and left.")] = True,
     timeout: TimeoutOpt = 600.0,
+    config_file: ConfigOpt = None,
 ) -> None:
     """Ask a running server to finish: final pose graph, refinement, outputs, exit.
 
@@ -89,13 +94,15 @@ def finalise(
       cpslam finalise --connect tcp/127.0.0.1:7447
 
       cpslam finalise --connect tcp/10.0.0.5:7447 --session lab --no-wait
+
+      cpslam finalise --config secure/operator.yaml --connect tls/10.0.0.5:7447
     """
     import threading
 
     from cpslam import protocol
     from cpslam.protocol import Control, keys
 
-    cfg, bus = _client(connect, session, min(timeout, 30.0))
+    cfg, bus = _client(connect, session, min(timeout, 30.0), config_file)
     s = cfg.transport.session
     present, gone = threading.Event(), threading.Event()
     with bus:
@@ -141,14 +148,19 @@ def format_status(summary: dict) -> str:
     return "\n".join(lines)
 
 
-def _client(connect: list[str] | None, session: str | None, timeout: float):
-    """The config (defaults + flags + environment) and an open client bus, or exit 3."""
+def _client(connect: list[str] | None, session: str | None, timeout: float,
+            config_file: Path | None = None):
+    """The config (defaults + --config + environment + flags) and an open client bus; exits 3
+    when no server is reachable, 2 on a bad setting (e.g. a missing certificate)."""
     from cpslam.common.bus import open_client
     from cpslam.common.config.cli import config_or_exit, transport_sets
 
-    cfg = config_or_exit("cpu", None, [*transport_sets(session, None, connect),
-                                       f"transport.open_timeout_s={max(timeout, 0.5)}"])
-    bus = open_client(cfg.transport, timeout, "client")
+    cfg = config_or_exit("cpu", config_file, [*transport_sets(session, None, connect),
+                                              f"transport.open_timeout_s={max(timeout, 0.5)}"])
+    try:
+        bus = open_client(cfg.transport, timeout, "client")
+    except ValueError as err:
+        fail(f"transport: {err}")
     if bus is None:
         where = ", ".join(cfg.transport.connect) or "tcp/127.0.0.1:7447"
         fail(f"cannot reach a server at {where}", ExitCode.NO_SERVER)

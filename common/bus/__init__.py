@@ -21,6 +21,7 @@ from cpslam.common.bus.liveliness import LivelinessToken, LivelinessWatcher
 from cpslam.common.bus.memory import InMemoryBus, InMemoryNetwork
 from cpslam.common.bus.subscription import Sample, Subscription
 from cpslam.common.bus.zenoh_bus import ZenohBus, zenoh_config
+from cpslam.common.bus.zenoh_security import ZenohSecurity
 
 __all__ = [
     "Bus",
@@ -36,6 +37,7 @@ __all__ = [
     "Sample",
     "Subscription",
     "ZenohBus",
+    "ZenohSecurity",
     "bus_from_config",
     "intersects",
     "is_concrete",

@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Literal
 from cpslam.common.bus.interface import Bus, BusError
 from cpslam.common.bus.memory import InMemoryBus, InMemoryNetwork
 from cpslam.common.bus.zenoh_bus import ZenohBus
+from cpslam.common.bus.zenoh_security import ZenohSecurity
 
 if TYPE_CHECKING:
     from cpslam.common.config import TransportConfig
@@ -69,6 +70,7 @@ def bus_from_config(
         multicast_scouting=transport.multicast_scouting,
         open_timeout_s=transport.open_timeout_s,
         max_payload_bytes=max_payload,
+        security=ZenohSecurity.from_transport(transport),
     )
 
 

@@ -20,6 +20,7 @@ import zenoh
 
 from cpslam.common.bus.interface import Bus, BusClosedError, BusError, Reply
 from cpslam.common.bus.liveliness import LivelinessWatcher
+from cpslam.common.bus.zenoh_security import ZenohSecurity
 
 logger = logging.getLogger(__name__)
 
@@ -42,6 +43,7 @@ def zenoh_config(
     lease_s: float = 3.0,
     multicast_scouting: bool = False,
     open_timeout_s: float = 5.0,
+    security: ZenohSecurity | None = None,
 ) -> zenoh.Config:
     """The zenoh.Config for these settings (arguments as in `ZenohBus`)."""
     if mode not in MODES:
@@ -53,7 +55,8 @@ def zenoh_config(
         raise ValueError("a zenoh client needs connect endpoints (or multicast_scouting=True)")
     if lease_s <= 0 or open_timeout_s <= 0:
         raise ValueError(f"lease_s and open_timeout_s must be > 0, got {lease_s}, {open_timeout_s}")
-    conf = zenoh.Config()
+    security = security if security is not None else ZenohSecurity()
+    conf = security.base_config()
     settings: dict[str, object] = {
         "mode": mode,
         "connect/endpoints": connect,
@@ -74,6 +77,7 @@ def zenoh_config(
             "period_max_ms": 1000,
             "period_increase_factor": 2,
         }
+    settings.update(security.settings(mode, [*listen, *connect]))
     for key, value in settings.items():
         conf.insert_json5(key, json.dumps(value))
     return conf
@@ -111,6 +115,8 @@ class ZenohBus(Bus):
             wait on a vanished peer) and busy subscription callbacks share the deadline.
         max_payload_bytes: larger payloads are refused on publish and dropped on receive
             (see `Bus`); None: no limit.
+        security: TLS / mutual TLS, user-password authentication, access control and a base
+            Zenoh config file (`ZenohSecurity`); None: plain Zenoh.
     """
 
     def __init__(
@@ -125,10 +131,12 @@ class ZenohBus(Bus):
         block_on_congestion: bool = True,
         close_timeout_s: float = 2.0,
         max_payload_bytes: int | None = None,
+        security: ZenohSecurity | None = None,
     ) -> None:
         super().__init__(close_timeout_s, max_payload_bytes)
         config = zenoh_config(
-            mode, listen, connect, shared_memory, lease_s, multicast_scouting, open_timeout_s
+            mode, listen, connect, shared_memory, lease_s, multicast_scouting, open_timeout_s,
+            security,
         )
         self.mode = mode
         self.listen = list(listen)

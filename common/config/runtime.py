@@ -11,6 +11,7 @@ from pydantic import (
     PositiveFloat,
     PositiveInt,
     field_validator,
+    model_validator,
 )
 
 from cpslam.common.config.base import Section
@@ -49,6 +50,34 @@ class TransportConfig(Section):
     """Messages larger than this (MiB) are refused on send and dropped on receive."""
     open_timeout_s: PositiveFloat = 5.0
     """Time (s) allowed for opening a session and reaching the connect endpoints."""
+    tls_root_ca: Path | None = None
+    """CA certificate (PEM) that peers' TLS certificates must be signed by (tls/, quic/)."""
+    tls_cert: Path | None = None
+    """This process's TLS certificate (PEM), for listening and for mutual TLS when connecting."""
+    tls_key: Path | None = None
+    """Private key (PEM) of tls_cert."""
+    tls_mtls: bool = False
+    """Mutual TLS: a listener demands a client certificate, a client presents tls_cert."""
+    tls_verify_name: bool = True
+    """A client checks that the server's certificate names the host it connects to."""
+    auth_user: str | None = None
+    """User name for Zenoh's user-password authentication when connecting; null = none."""
+    auth_password_file: Path | None = None
+    """File whose first line is auth_user's password (kept out of the saved config)."""
+    auth_dictionary: Path | None = None
+    """Zenoh credentials file (user:password lines) a listener accepts; null = no check."""
+    access_control: Path | None = None
+    """JSON5 file with Zenoh's access_control object (rules, subjects, policies)."""
+    zenoh_config: Path | None = None
+    """Zenoh JSON5 config file applied first; the transport keys set here override it."""
+
+    @model_validator(mode="after")
+    def _pairs(self) -> TransportConfig:
+        if (self.tls_cert is None) != (self.tls_key is None):
+            raise ValueError("tls_cert and tls_key must be set together")
+        if (self.auth_user is None) != (self.auth_password_file is None):
+            raise ValueError("auth_user and auth_password_file must be set together")
+        return self
 
     @field_validator("session")
     @classmethod

@@ -85,6 +85,17 @@ class Peer:
         self.proc.wait(5.0)
 
 
+@pytest.fixture(scope="session")
+def apartment(tmp_path_factory: pytest.TempPathFactory):
+    """Two agents in the synthetic apartment; they meet from about frame 170 of 300 (made
+    once per test run: the daemon tests over TCP and over mutual TLS share it)."""
+    pytest.importorskip("open3d")  # the synthetic renderer
+    from cpslam.tools.synth import generate
+
+    return generate(tmp_path_factory.mktemp("apt") / "apt", scene="apartment", agents=2,
+                    frames=300, seed=0)
+
+
 @pytest.fixture
 def endpoint() -> str:
     """A Zenoh TCP endpoint on 127.0.0.1 with a free port."""

@@ -67,10 +67,11 @@ def agent_args(seq: Path, agent_id: str, endpoint: str, session: str, out: Path,
             "--no-progress", *extra]
 
 
-def status(endpoint: str, session: str, timeout: float = 10.0) -> dict | None:
-    """The server's status summary through `cpslam status --json` (None if no answer)."""
+def status(endpoint: str, session: str, timeout: float = 10.0, *extra: str) -> dict | None:
+    """The server's status summary through `cpslam status --json` (None if no answer);
+    `extra`: more flags, e.g. ("--config", "operator.yaml")."""
     done = subprocess.run([sys.executable, "-m", "cpslam", "status", "--connect", endpoint,
-                           "--session", session, "--json", "--timeout", str(timeout)],
+                           "--session", session, "--json", "--timeout", str(timeout), *extra],
                           capture_output=True, text=True, env=ENV, timeout=timeout + 30)
     if done.returncode != 0:
         return None
@@ -83,9 +84,9 @@ def agent_field(endpoint: str, session: str, agent: str, name: str, default):
     return summary.get("agents", {}).get(agent, {}).get(name, default)
 
 
-def finalise(endpoint: str, session: str, timeout: float = 180.0) -> None:
+def finalise(endpoint: str, session: str, timeout: float = 180.0, *extra: str) -> None:
     done = subprocess.run([sys.executable, "-m", "cpslam", "finalise", "--connect", endpoint,
-                           "--session", session, "--timeout", str(timeout)],
+                           "--session", session, "--timeout", str(timeout), *extra],
                           capture_output=True, text=True, env=ENV, timeout=timeout + 30)
     assert done.returncode == 0, done.stdout + done.stderr
 

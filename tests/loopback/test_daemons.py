@@ -39,15 +39,6 @@ def daemons():
         d.kill()
 
 
-@pytest.fixture(scope="module")
-def apartment(tmp_path_factory: pytest.TempPathFactory):
-    """Two agents in the synthetic apartment; they meet from about frame 170 of 300."""
-    from cpslam.tools.synth import generate
-
-    return generate(tmp_path_factory.mktemp("apt") / "apt", scene="apartment", agents=2,
-                    frames=300, seed=0)
-
-
 def test_two_agents_merge_over_tcp(tmp_path: Path, endpoint: str, apartment, daemons) -> None:
     from cpslam.common.datasets import open_sequence
     from cpslam.common.trajectory import read_tum

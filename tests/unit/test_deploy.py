@@ -31,6 +31,7 @@ ROOT = Path(__file__).resolve().parents[2]
 DEPLOY = ROOT / "deploy"
 COMPOSE = DEPLOY / "docker-compose.yml"
 COMPOSE_GPU = DEPLOY / "docker-compose.gpu.yml"
+COMPOSE_SECURE = DEPLOY / "docker-compose.secure.yml"
 DOCKERFILE = DEPLOY / "Dockerfile"
 DOCS = ROOT / "docs" / "deployment.md"
 SCRIPTS: dict[str, str] = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"][
@@ -102,8 +103,9 @@ def _resolved(binary: Path, files: list[Path], env: dict[str, str] | None = None
 
 
 # (ids avoid the word "gpu": conftest skips items with that keyword when CUDA is missing)
-@pytest.mark.parametrize("files", [[COMPOSE], [COMPOSE, COMPOSE_GPU]],
-                         ids=["demo", "demo+cuda-override"])
+@pytest.mark.parametrize("files", [[COMPOSE], [COMPOSE, COMPOSE_GPU], [COMPOSE, COMPOSE_SECURE],
+                                   [COMPOSE, COMPOSE_SECURE, COMPOSE_GPU]],
+                         ids=["demo", "demo+cuda-override", "demo+secure", "demo+secure+cuda"])
 def test_compose_config_is_valid(compose_bin: Path, files: list[Path]) -> None:
     out = _compose(compose_bin, files, "config", "-q")
     assert out.returncode == 0, f"docker compose config rejected {files}:\n{out.stderr}"
@@ -343,6 +345,39 @@ def test_compose_commands_use_existing_flags(compose_bin: Path, daemons_availabl
     assert seen == {"cpslam", "cpslam-server", "cpslam-agent"}
 
 
+def test_compose_secure_variant_uses_mutual_tls(compose_bin: Path,
+                                                daemons_available: None) -> None:
+    services = _resolved(compose_bin, [COMPOSE, COMPOSE_SECURE])["services"]
+    assert set(services) == {"data", "certs", "server", *AGENTS, "finalise"}
+    (init,) = _invocations(services["certs"]["command"])
+    _check_flags(init, f"{COMPOSE_SECURE.name} service certs")
+    assert init[:3] == ["cpslam", "secure", "init"]
+    cert_dir = _flag(init, "--out")
+    assert _flag(init, "--install-dir") == cert_dir
+    assert "server" in [init[i + 1] for i, t in enumerate(init) if t == "--server-name"]
+    certified = [init[i + 1] for i, t in enumerate(init) if t == "--agent-id"]
+    server = services["server"]["command"]
+    assert _flag(server, "--listen").startswith("tls/")
+    assert _flag(server, "--config") == f"{cert_dir}/server.yaml"
+    port = _flag(server, "--listen").rsplit(":", 1)[1]
+    ids = []
+    for agent in AGENTS:
+        argv = services[agent]["command"]
+        ids.append(_flag(argv, "--agent-id"))
+        assert _flag(argv, "--config") == f"{cert_dir}/{ids[-1]}.yaml", "its own certificate"
+        assert _flag(argv, "--connect") == f"tls/server:{port}"
+    assert sorted(ids) == sorted(certified)
+    assert _flag(services["finalise"]["command"], "--config") == f"{cert_dir}/operator.yaml"
+    assert _flag(services["finalise"]["command"], "--connect") == f"tls/server:{port}"
+    for name in ("server", *AGENTS, "finalise"):
+        _check_flags(services[name]["command"], f"{COMPOSE_SECURE.name} service {name}")
+        mounts = {v["target"]: v for v in services[name]["volumes"]}
+        assert mounts[cert_dir].get("read_only"), f"{name} mounts the certificates read-only"
+        if name != "finalise":
+            assert services[name]["depends_on"]["certs"]["condition"] == \
+                "service_completed_successfully", name
+
+
 def test_compose_agents_match_the_data_and_the_server(compose_bin: Path) -> None:
     services = _resolved(compose_bin, [COMPOSE])["services"]
     synth = _invocations(services["data"]["command"])[0]
@@ -362,7 +397,9 @@ def test_compose_agents_match_the_data_and_the_server(compose_bin: Path) -> None
 
 def test_docs_commands_use_existing_flags(daemons_available: None) -> None:
     text = DOCS.read_text()
-    blocks = re.findall(r"```(?:bash|sh|console)?\n(.*?)```", text, re.S)
+    # Every fenced block is matched (so a yaml block cannot shift the fences), shell ones kept.
+    blocks = [body for lang, body in re.findall(r"```([\w-]*)\n(.*?)```", text, re.S)
+              if lang in ("", "bash", "sh", "console")]
     checked = 0
     for block in blocks:
         for line in re.sub(r"\\\n", " ", block).splitlines():
