@@ -128,7 +128,7 @@ def run_standalone(
         signal.signal(signal.SIGTERM, previous)
     odometry.drain()  # the mapping calls still running belong to the run
     wall = time.perf_counter() - t0
-    write_agent_outputs(odometry, agent_dir, results, wall, interrupted, device)
+    write_agent_outputs(odometry, agent_dir, results, wall, interrupted, device, seq)
     odometry.close()
     return StandaloneResult(agent_dir, start + len(results), len(seq), interrupted, wall, results)
 
@@ -140,8 +140,10 @@ def write_agent_outputs(
     wall_time_s: float,
     interrupted: bool,
     device: str,
+    seq: RGBDSequence | None = None,
 ) -> None:
-    """trajectory.tum, map.ply, state.pt and metrics.json of one agent."""
+    """trajectory.tum, map.ply, state.pt and metrics.json of one agent; metrics.json names
+    `seq` (where a report finds the ground truth)."""
     import torch
 
     odometry.drain()
@@ -153,8 +155,11 @@ def write_agent_outputs(
         write_ply(agent_dir / "map.ply", pm.xyz_world().detach().cpu().numpy(),
                   pm.color.cpu().numpy())
     torch.save(odometry.state_dict(), agent_dir / STATE_FILE)
-    write_json(agent_dir / "metrics.json", frame_metrics(odometry, results, wall_time_s,
-                                                         interrupted, device))
+    metrics = frame_metrics(odometry, results, wall_time_s, interrupted, device)
+    if seq is not None:
+        metrics["sequence"] = {"path": str(seq.path.resolve()), "format": seq.format,
+                               "frames": len(seq)}
+    write_json(agent_dir / "metrics.json", metrics)
     logger.info("wrote %s (%d frames, %d points)", agent_dir, len(stamps), len(pm))
 
 

@@ -181,12 +181,12 @@ def _with_loops(cfg, sequence, agent_id: str, run_dir: Path, device: str,
     """The standalone run with loop closure: `cpslam run`'s lock-step run of this one agent
     and the back end, with SIGINT/SIGTERM ending the frames early."""
     from cpslam.common.cli import stop_on_signals
-    from cpslam.run import print_summary, run_collab
+    from cpslam.run import report_run, run_collab
 
     with stop_on_signals() as stop:
         result = run_collab(cfg, [sequence], run_dir, device, agent_ids=[agent_id],
                             show_progress=show_progress, stop=stop)
-    print_summary(result, "cpslam-agent --standalone")
+    report_run(result, "cpslam-agent --standalone", show_progress=show_progress)
     typer.echo(f"{result.frames.get(agent_id, 0)}/{len(sequence)} frames in "
                f"{result.wall_s:.1f} s → {run_dir / f'agent_{agent_id}'}")
     return ExitCode.INTERRUPTED if result.interrupted else ExitCode.OK

@@ -12,7 +12,8 @@ from rich.console import Console
 
 from cpslam.common.geometry import compose
 from cpslam.common.trajectory import write_tum
-from cpslam.tools.report import build_report, main_group, print_report
+from cpslam.tools.report import build_report, main_group
+from cpslam.tools.report_table import print_report
 
 
 def _circle(n: int, phase: float) -> np.ndarray:
@@ -94,7 +95,7 @@ def test_report_numbers(run: tuple[Path, dict[str, Path]]) -> None:
     assert (total["loops_found"], total["loops_accepted"]) == (5, 2)
     for plot in report["plots"]:
         assert Path(plot).read_bytes()[:4] == b"\x89PNG"
-    assert "not found" in report["mesh"]["skipped"]
+    assert "fused_map.pt" in report["mesh"]["skipped"]
     assert json.loads((folder / "report.json").read_text())["all"]["groups"] == 1
     traffic = report["traffic"]
     assert traffic["agents"]["1"]["to_agent"]["group_decoder"]["bytes_per_s"] == 20_000.0
