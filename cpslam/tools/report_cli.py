@@ -41,7 +41,7 @@ def finish_run(run: Path, sequences: dict[str, Path] | None = None, mesh: bool =
 def report(
     run: Annotated[Path, typer.Argument(help="Finished run folder: cpslam run, cpslam demo, "
                                         "the daemons' --out or cpslam-agent --standalone.")],
-    gt: Annotated[list[str] | None, typer.Option(
+    gt: Annotated[list[Path] | None, typer.Option(
         "--gt", help="Ground truth of an agent: ID=PATH, or PATH for the next agent in order "
         "(a dataset folder or a TUM file; repeat per agent). Default: the sequences the run "
         "recorded.", show_default=False)] = None,
@@ -98,7 +98,8 @@ def report(
         return
     try:
         # --gt replaces the recorded sequence of the agents it names, no others.
-        sequences = {**recorded_sequences(run), **parse_gt_options(gt or [], agent_ids(run))}
+        sequences = {**recorded_sequences(run), **parse_gt_options([str(g) for g in gt or []],
+                                                                agent_ids(run))}
         console = Console(stderr=True) if as_json else Console()
         result = finish_run(run, sequences, mesh=mesh, show_progress=not no_progress,
                             console=console, outputs=not as_json, render_views=render_views)

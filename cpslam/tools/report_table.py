@@ -66,7 +66,7 @@ def print_report(report: dict[str, Any], console: Any = None, title: str | None 
         frames = sum(len(r["frames"]) for r in render["agents"].values())
         console.print(f"renders of the final map at ground-truth poses ({frames} frames, "
                       f"{render['width']}x{render['height']}): PSNR {render['psnr_db']:.2f} dB, "
-                      f"SSIM {render['ssim']:.3f}, depth L1 {100 * render['depth_l1_m']:.2f} cm; "
+                      f"SSIM {render['ssim']:.3f}, depth L1 {_cm(render['depth_l1_m'])} cm; "
                       "LPIPS omitted (its weights would have to be downloaded)")
     for note in report.get("notes", []):
         console.print(f"note: {note}")

@@ -40,8 +40,11 @@ DEFAULT_VIEWS = 10
 
 
 def evaluate_renders(run: Path, sequences: dict[str, Path], views: int = DEFAULT_VIEWS,
-                     device: str = "cpu", show_progress: bool = False) -> dict[str, Any]:
-    """PSNR (dB), SSIM, depth L1 (m) per agent of the map and over all rendered frames."""
+                     device: str = "cpu", show_progress: bool = False,
+                     save: Path | None = None) -> dict[str, Any]:
+    """PSNR (dB), SSIM, depth L1 (m) per agent of the map and over all rendered frames;
+    `save`: also write each render and its reference as PNG
+    (``SAVE/agent_<id>/<frame>_render.png`` and ``_gt.png``)."""
     from cpslam.agent.standalone import open_for_config
     from cpslam.common.camera import resize_rgbd
     from cpslam.common.logs import progress
@@ -74,6 +77,7 @@ def evaluate_renders(run: Path, sequences: dict[str, Path], views: int = DEFAULT
     T_est_gt = np.linalg.inv(fit.T_gt_est)
     scale = cfg.camera.downscale
     rows: dict[str, dict[str, Any]] = {}
+    notes = [LPIPS_NOTE]
     for m in final.members:
         _, gt_idx = associate(est[m]["global"][0], gts[m][0])
         pick = gt_idx[np.linspace(0, len(gt_idx) - 1, min(views, len(gt_idx))).round()
@@ -91,13 +95,20 @@ def evaluate_renders(run: Path, sequences: dict[str, Path], views: int = DEFAULT
                 raise ValueError(f"{sequences[m]}: frames are {ref_rgb.shape[1]}x"
                                  f"{ref_rgb.shape[0]} at the run's scale, the map renders "
                                  f"{intr.width}x{intr.height}: not the run's sequence?")
+            if save is not None:
+                _save_pair(save / f"agent_{m}", int(frame.index), rgb, ref_rgb)
             p.append(psnr(rgb, ref_rgb))
             s.append(ssim(rgb, ref_rgb))
             rendered_depth.append(depth)
             ref_depth.append(ref_d)
+        try:
+            l1 = depth_l1(rendered_depth, ref_depth)
+        except ValueError:  # the map renders no depth where the frames have some
+            l1 = None
+            notes.append(f"agent {m}: no depth L1, the renders and frames share no valid "
+                         "depth pixel")
         rows[m] = {"frames": [int(seqs[m][int(i)].index) for i in pick],
-                   "psnr_db": p, "ssim": s,
-                   "depth_l1_m": depth_l1(rendered_depth, ref_depth)}
+                   "psnr_db": p, "ssim": s, "depth_l1_m": l1}
     every_psnr = [v for r in rows.values() for v in r["psnr_db"]]
     every_ssim = [v for r in rows.values() for v in r["ssim"]]
     return {
@@ -108,16 +119,36 @@ def evaluate_renders(run: Path, sequences: dict[str, Path], views: int = DEFAULT
         "agents": {m: {**r, "mean_psnr_db": float(np.mean(r["psnr_db"])),
                        "mean_ssim": float(np.mean(r["ssim"]))} for m, r in rows.items()},
         "psnr_db": float(np.mean(every_psnr)), "ssim": float(np.mean(every_ssim)),
-        # Frames weigh the same, as in depth_l1 itself.
-        "depth_l1_m": float(np.average([r["depth_l1_m"] for r in rows.values()],
-                                       weights=[len(r["ssim"]) for r in rows.values()])),
-        "lpips": None, "notes": [LPIPS_NOTE],
+        "depth_l1_m": _frame_mean(rows), "lpips": None, "notes": notes,
     }
+
+
+def _frame_mean(rows: dict[str, dict[str, Any]]) -> float | None:
+    """Depth L1 over the agents with one, each frame weighing the same (as in depth_l1)."""
+    have = [r for r in rows.values() if r["depth_l1_m"] is not None]
+    if not have:
+        return None
+    return float(np.average([r["depth_l1_m"] for r in have],
+                            weights=[len(r["ssim"]) for r in have]))
+
+
+def _cm(value: float | None) -> str:
+    return "-" if value is None else f"{100 * value:.2f}"
+
+
+def _save_pair(folder: Path, index: int, rgb: np.ndarray, ref_rgb: np.ndarray) -> None:
+    import cv2
+
+    folder.mkdir(parents=True, exist_ok=True)
+    for name, img in (("render", rgb), ("gt", ref_rgb)):
+        path = folder / f"{index:06d}_{name}.png"
+        if not cv2.imwrite(str(path), np.ascontiguousarray(img[..., ::-1])):
+            raise OSError(f"{path}: could not be written")
 
 
 def render(
     run: Annotated[Path, typer.Argument(help="Finished run folder (any kind).")],
-    gt: Annotated[list[str] | None, typer.Option(
+    gt: Annotated[list[Path] | None, typer.Option(
         "--gt", help="Dataset folder of an agent: ID=PATH, or PATH for the next agent in "
         "order (repeat per agent). Default: the sequences the run recorded.",
         show_default=False)] = None,
@@ -127,6 +158,9 @@ def render(
                                         "(rendering).")] = "cpu",
     as_json: JsonOpt = False,
     out: Annotated[Path | None, out_option("Also write the numbers to this JSON file.")] = None,
+    save_images: Annotated[Path | None, typer.Option(
+        "--save-images", help="Also write each render and its reference frame as PNG "
+        "(DIR/agent_<id>/<frame>_render.png, _gt.png).", show_default=False)] = None,
     overwrite: OverwriteOpt = False,
 ) -> None:
     """PSNR, SSIM and depth L1 of renders from a run's final map at the ground-truth poses.
@@ -143,6 +177,8 @@ def render(
       cpslam eval render runs/room --gt runs/data/room/agent_0 --views 30
 
       cpslam eval render runs/apt --gt 1=data/apt/agent_1 --json --out render.json
+
+      cpslam eval render runs/demo --views 3 --save-images runs/demo/render_check
     """
     from rich.console import Console
     from rich.table import Table
@@ -151,15 +187,17 @@ def render(
     from cpslam.tools.eval.cli import write_record
     from cpslam.tools.runfolder import agent_ids, parse_gt_options, recorded_sequences
 
-    if out is not None:
-        check_output(out, overwrite)
+    for path in (out, save_images):
+        if path is not None:
+            check_output(path, overwrite)
     if not run.is_dir():
         fail(f"{run}: no such run folder")
     try:
-        sequences = {**recorded_sequences(run), **parse_gt_options(gt or [], agent_ids(run))}
+        sequences = {**recorded_sequences(run), **parse_gt_options([str(g) for g in gt or []],
+                                                                agent_ids(run))}
         record = evaluate_renders(run, sequences, views, resolve_device(device),
-                                  show_progress=not as_json)
-    except (FileNotFoundError, ValueError) as err:
+                                  show_progress=not as_json, save=save_images)
+    except (OSError, ValueError) as err:
         fail(str(err))
     if as_json:
         typer.echo(json.dumps(record, indent=2))
@@ -170,11 +208,11 @@ def render(
             table.add_column(col, justify="left" if col == "agent" else "right")
         for m, r in record["agents"].items():
             table.add_row(m, str(len(r["frames"])), f"{r['mean_psnr_db']:.2f}",
-                          f"{r['mean_ssim']:.3f}", f"{100 * r['depth_l1_m']:.2f}")
+                          f"{r['mean_ssim']:.3f}", _cm(r["depth_l1_m"]))
         table.add_section()
         table.add_row("all", str(sum(len(r["frames"]) for r in record["agents"].values())),
                       f"{record['psnr_db']:.2f}", f"{record['ssim']:.3f}",
-                      f"{100 * record['depth_l1_m']:.2f}")
+                      _cm(record["depth_l1_m"]))
         console = Console()
         console.print(table)
         console.print("alignment: se3 of the trajectories, ATE "
