@@ -68,6 +68,9 @@ def build_report(run: Path, sequences: dict[str, Path] | None = None, mesh: bool
     run = Path(run)
     metrics = read_json(run / "metrics.json")
     ids = agent_ids(run)
+    if metrics is None and (run / "server_state.pt").is_file():
+        raise FileNotFoundError(f"{run}/metrics.json: not found; the server's state is there, "
+                                "so it has not finalised (cpslam finalise)")
     if metrics is None and not ids:
         raise FileNotFoundError(f"{run}/metrics.json: not found and no agent_<id>/"
                                 "trajectory.tum (did the server finalise? is it a run folder?)")

@@ -187,3 +187,11 @@ def test_lone_agent_folder_has_no_server_part(run: tuple[Path, dict[str, Path]])
     out = io.StringIO()
     print_report(report, Console(file=out, width=100))
     assert "one agent, no server" in out.getvalue()
+
+
+def test_unfinalised_server_folder_is_refused(run: tuple[Path, dict[str, Path]]) -> None:
+    folder, _ = run
+    (folder / "metrics.json").unlink()
+    (folder / "server_state.pt").write_bytes(b"")
+    with pytest.raises(FileNotFoundError, match="has not finalised"):
+        build_report(folder, mesh=False)
