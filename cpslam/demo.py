@@ -11,8 +11,9 @@
 3. Progress: the server's status query (frames, keyframes, groups, loops) once a second.
 4. When every agent exited 0, a ``Control(finalise)`` message asks the server for the final
    pose graph, refinement and outputs; it exits 0.
-5. `cpslam.tools.report`: tables (results; traffic per agent and key), peak memory of every
-   process, plots, mesh; the list of outputs.
+5. `cpslam.tools.report_cli.finish_run` (what `cpslam report` runs): tables (results; traffic
+   per agent and key), peak memory of every process, render and reconstruction figures,
+   plots, mesh; the list of outputs.
 
 A child that dies (an agent with a non-zero code, the server at all before it was asked to
 finish) stops the others and is named with its log file. Ctrl-C sends SIGINT once to every
