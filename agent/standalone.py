@@ -22,7 +22,7 @@ from cpslam.common.config import save_config
 from cpslam.common.datasets import RGBDFrame, RGBDSequence, open_sequence
 from cpslam.common.logs import make_progress
 from cpslam.common.ply import write_ply
-from cpslam.common.rundir import peak_rss_mb, write_json
+from cpslam.common.rundir import SCHEMA_VERSION, peak_rss_mb, write_json
 from cpslam.common.trajectory import write_tum
 
 if TYPE_CHECKING:
@@ -155,7 +155,8 @@ def write_agent_outputs(
         write_ply(agent_dir / "map.ply", pm.xyz_world().detach().cpu().numpy(),
                   pm.color.cpu().numpy())
     torch.save(odometry.state_dict(), agent_dir / STATE_FILE)
-    metrics = frame_metrics(odometry, results, wall_time_s, interrupted, device)
+    metrics = {"schema_version": SCHEMA_VERSION,
+               **frame_metrics(odometry, results, wall_time_s, interrupted, device)}
     if seq is not None:
         metrics["sequence"] = {"path": str(seq.path.resolve()), "format": seq.format,
                                "frames": len(seq)}

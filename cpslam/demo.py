@@ -335,4 +335,7 @@ def _interrupt(_signum: int, _frame: object) -> None:
 
 
 def _write_marker(out: Path, info: dict) -> None:
-    (out / MARKER).write_text(json.dumps(info, indent=2) + "\n")
+    from cpslam.common.rundir import SCHEMA_VERSION
+
+    (out / MARKER).write_text(json.dumps({"schema_version": SCHEMA_VERSION, **info}, indent=2)
+                              + "\n")
