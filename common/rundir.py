@@ -12,8 +12,9 @@ from typing import Any
 import numpy as np
 
 SCHEMA_VERSION = 1
-"""Version of the JSON files cpslam writes for people and tools to read (report.json,
-evaluation.json, the `cpslam eval` records): their ``schema_version`` field. Raised when a
+"""Version of the JSON files and ``--json`` records cpslam writes for people and tools to
+read (report.json, metrics.json, evaluation.json, the `cpslam eval` records; the list is in
+docs/evaluation.md): their ``schema_version`` field. Raised when a
 field is renamed or removed or its meaning changes; new fields do not raise it."""
 
 
