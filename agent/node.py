@@ -178,7 +178,7 @@ class AgentNode:
         agent_dir = self.run_dir / f"agent_{self.agent_id}"
         agent_dir.mkdir(parents=True, exist_ok=True)
         write_agent_outputs(self.odometry, agent_dir, self.results, self.wall_s, False,
-                            str(self.device))
+                            str(self.device), self.seq)
         if extra:
             metrics_path = agent_dir / "metrics.json"
             metrics = json.loads(metrics_path.read_text())

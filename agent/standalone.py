@@ -22,7 +22,7 @@ from cpslam.common.config import save_config
 from cpslam.common.datasets import RGBDFrame, RGBDSequence, open_sequence
 from cpslam.common.logs import make_progress
 from cpslam.common.ply import write_ply
-from cpslam.common.rundir import peak_rss_mb, write_json
+from cpslam.common.rundir import SCHEMA_VERSION, peak_rss_mb, write_json
 from cpslam.common.trajectory import write_tum
 
 if TYPE_CHECKING:
@@ -133,7 +133,7 @@ def run_standalone(
                        f"loss {result.track_loss:.4f}  points {result.n_points}")
     odometry.drain()  # the mapping calls still running belong to the run
     wall = time.perf_counter() - t0
-    write_agent_outputs(odometry, agent_dir, results, wall, interrupted, device)
+    write_agent_outputs(odometry, agent_dir, results, wall, interrupted, device, seq)
     odometry.close()
     return StandaloneResult(agent_dir, start + len(results), len(seq), interrupted, wall, results)
 
@@ -145,8 +145,10 @@ def write_agent_outputs(
     wall_time_s: float,
     interrupted: bool,
     device: str,
+    seq: RGBDSequence | None = None,
 ) -> None:
-    """trajectory.tum, map.ply, state.pt and metrics.json of one agent."""
+    """trajectory.tum, map.ply, state.pt and metrics.json of one agent; metrics.json names
+    `seq` (where a report finds the ground truth)."""
     import torch
 
     odometry.drain()
@@ -158,8 +160,12 @@ def write_agent_outputs(
         write_ply(agent_dir / "map.ply", pm.xyz_world().detach().cpu().numpy(),
                   pm.color.cpu().numpy())
     torch.save(odometry.state_dict(), agent_dir / STATE_FILE)
-    write_json(agent_dir / "metrics.json", frame_metrics(odometry, results, wall_time_s,
-                                                         interrupted, device))
+    metrics = {"schema_version": SCHEMA_VERSION,
+               **frame_metrics(odometry, results, wall_time_s, interrupted, device)}
+    if seq is not None:
+        metrics["sequence"] = {"path": str(seq.path.resolve()), "format": seq.format,
+                               "frames": len(seq)}
+    write_json(agent_dir / "metrics.json", metrics)
     logger.info("wrote %s (%d frames, %d points)", agent_dir, len(stamps), len(pm))
 
 

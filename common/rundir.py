@@ -11,6 +11,12 @@ from typing import Any
 
 import numpy as np
 
+SCHEMA_VERSION = 1
+"""Version of the JSON files and ``--json`` records cpslam writes for people and tools to
+read (report.json, metrics.json, evaluation.json, the `cpslam eval` records; the list is in
+docs/evaluation.md): their ``schema_version`` field. Raised when a
+field is renamed or removed or its meaning changes; new fields do not raise it."""
+
 
 def create_run_dir(out: str | Path, name: str | None = None) -> Path:
     """`out/name`, or `out/YYYYmmdd-HHMMSS` when no name is given; created if missing.

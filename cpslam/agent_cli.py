@@ -103,8 +103,10 @@ def agent(
     trajectory (the final pose graph's), trajectory_odometry.tum the same frames without loop
     corrections, metrics.json counts the loops, and RUN/ also gets the back end's outputs
     (metrics.json with loops found and accepted, trajectories/, fused_map.ply, pose_graph.g2o,
-    evaluation.json when the sequence has ground truth). --standalone --no-loops runs the
-    odometry alone: trajectory.tum is the odometry, and --resume continues such a run.
+    evaluation.json when the sequence has ground truth) and the report of cpslam report
+    without its mesh (report.json; cpslam mesh RUN makes the mesh). --standalone --no-loops
+    runs the odometry alone: trajectory.tum is the odometry, and --resume continues such a
+    run; cpslam report RUN reports it.
 
     Ctrl-C or SIGTERM stops the run and saves what exists (exit 130); with loop closure the
     run stops after the current frame and still runs the last pose graph (a second signal
@@ -202,12 +204,14 @@ def _with_loops(cfg, sequence, agent_id: str, run_dir: Path, device: str,
     """The standalone run with loop closure: `cpslam run`'s lock-step run of this one agent
     and the back end, with SIGINT/SIGTERM ending the frames early."""
     from cpslam.common.cli import stop_on_signals
-    from cpslam.run import print_summary, run_collab
+    from cpslam.run import report_run, run_collab
 
     with stop_on_signals() as stop:
         result = run_collab(cfg, [sequence], run_dir, device, agent_ids=[agent_id],
                             show_progress=show_progress, stop=stop)
-    print_summary(result, "cpslam-agent --standalone")
+    # No mesh: it renders the map 40 times, long next to a short agent run; `cpslam mesh RUN`
+    # or `cpslam report RUN` makes it.
+    report_run(result, "cpslam-agent --standalone", mesh=False, show_progress=show_progress)
     typer.echo(f"{result.frames.get(agent_id, 0)}/{len(sequence)} frames in "
                f"{result.wall_s:.1f} s → {run_dir / f'agent_{agent_id}'}")
     return ExitCode.INTERRUPTED if result.interrupted else ExitCode.OK

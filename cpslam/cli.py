@@ -17,7 +17,10 @@ from cpslam.server.client import finalise as server_finalise
 from cpslam.server.client import status as server_status
 from cpslam.tools.eval.cli import ate as eval_ate
 from cpslam.tools.eval.recon_cli import recon as eval_recon
+from cpslam.tools.eval.render_cli import render as eval_render
+from cpslam.tools.mesh_cli import mesh as mesh_command
 from cpslam.tools.render import render
+from cpslam.tools.report_cli import report as report_command
 from cpslam.tools.secure.cli import init as secure_init
 from cpslam.tools.synth.cli import synth as dataset_synth
 from cpslam.tools.view.cli import view
@@ -31,7 +34,8 @@ app = App(
 dataset_app = App(no_args_is_help=True, help="Inspect and generate RGB-D sequences.\n\n"
                   "Examples:\n\n  cpslam dataset info runs/data/room/agent_0 --json\n\n"
                   "  cpslam dataset synth --scene room --loop --out runs/data/room")
-eval_app = App(no_args_is_help=True, help="Evaluate trajectories against ground truth.\n\n"
+eval_app = App(no_args_is_help=True, help="Evaluate trajectories, meshes and renders against "
+               "ground truth.\n\n"
                "Examples:\n\n  cpslam eval ate --gt runs/data/room/agent_0 --est runs/room\n\n"
                "  cpslam eval recon --gt data/synth/mesh.ply --est runs/x/mesh.ply --json")
 app.add_typer(dataset_app, name="dataset")
@@ -47,9 +51,12 @@ dataset_app.command("info")(dataset_info)
 dataset_app.command("synth")(dataset_synth)
 eval_app.command("ate")(eval_ate)
 eval_app.command("recon")(eval_recon)
+eval_app.command("render")(eval_render)
 config_app.command("show")(config_show)
 app.command("render")(render)
 app.command("view")(view)
+app.command("report")(report_command)
+app.command("mesh")(mesh_command)
 app.command("run")(run_command)
 app.command("demo")(demo)
 app.command("status")(server_status)

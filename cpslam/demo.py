@@ -11,8 +11,9 @@
 3. Progress: the server's status query (frames, keyframes, groups, loops) once a second.
 4. When every agent exited 0, a ``Control(finalise)`` message asks the server for the final
    pose graph, refinement and outputs; it exits 0.
-5. `cpslam.tools.report`: tables (results; traffic per agent and key), peak memory of every
-   process, plots, mesh; the list of outputs.
+5. `cpslam.tools.report_cli.finish_run` (what `cpslam report` runs): tables (results; traffic
+   per agent and key), peak memory of every process, render and reconstruction figures,
+   plots, mesh; the list of outputs.
 
 A child that dies (an agent with a non-zero code, the server at all before it was asked to
 finish) stops the others and is named with its log file. Ctrl-C sends SIGINT once to every
@@ -224,7 +225,8 @@ def _run(sup: Supervisor, endpoint: str, common: list[str], seqs: list[Path],
 
     py = [sys.executable, "-m"]
     t = time.monotonic()
-    sup.start("server", [*py, "cpslam.server.cli", "--listen", endpoint, *common],
+    # The demo reports itself (with its own title and memory), not through the server.
+    sup.start("server", [*py, "cpslam.server.cli", "--listen", endpoint, "--no-report", *common],
               may_exit=False)
     client_cfg = load_config(overrides=[f"transport.connect={endpoint}",
                                         f"transport.session={SESSION}",
@@ -316,31 +318,20 @@ def _status(bus: Any) -> dict:
 
 
 def _report(out: Path, info: dict, mesh: bool, show: bool) -> None:
-    from rich.console import Console
-
-    from cpslam.tools.report import build_report, print_report
+    from cpslam.tools.report_cli import finish_run
 
     t = time.monotonic()
     seqs = {a: Path(p) for a, p in info["sequences"].items()}
-    report = build_report(out, seqs, mesh=mesh, show_progress=show, process="demo")
+    report = finish_run(out, seqs, mesh=mesh, show_progress=show, process="demo",
+                        title=f"cpslam demo: {info['agents']} agents, preset {info['preset']}, "
+                              f"{info['frames']} frames each, run {info['wall_s']:.0f} s")
     info["report_s"] = time.monotonic() - t
     info["wall_s"] += info["report_s"]
     info["memory_mb"] = report["memory_mb"]
     _write_marker(out, info)
-    console = Console()
-    print_report(report, console, title=f"cpslam demo: {info['agents']} agents, preset "
-                 f"{info['preset']}, {info['frames']} frames each, {info['wall_s']:.0f} s")
-    mesh_file = "mesh.ply" if "path" in report.get("mesh", {}) else "(skipped)"
-    plots = ", ".join(Path(p).name for p in report.get("plots", [])) or "(no ground truth)"
-    console.print(f"outputs in {out}/\n"
-                  "  global trajectories  trajectories/agent_<id>_global.tum (and _local)\n"
-                  f"  fused map, mesh      fused_map.ply, {mesh_file}\n"
-                  "  pose graph           pose_graph.g2o\n"
-                  "  metrics              metrics.json (server), report.json (this table), "
-                  "agent_<id>/metrics.json\n"
-                  f"  plots                plots/: {plots}\n"
-                  "  logs                 logs/server.log, logs/agent_<id>.log", soft_wrap=True)
-    _save_view(out, seqs, console)
+    from rich.console import Console
+
+    _save_view(out, seqs, Console())
 
 
 def _save_view(out: Path, seqs: dict[str, Path], console: Any) -> None:
@@ -363,4 +354,7 @@ def _interrupt(_signum: int, _frame: object) -> None:
 
 
 def _write_marker(out: Path, info: dict) -> None:
-    (out / MARKER).write_text(json.dumps(info, indent=2) + "\n")
+    from cpslam.common.rundir import SCHEMA_VERSION
+
+    (out / MARKER).write_text(json.dumps({"schema_version": SCHEMA_VERSION, **info}, indent=2)
+                              + "\n")

@@ -63,7 +63,7 @@ if TYPE_CHECKING:
     from cpslam.common.datasets import RGBDSequence
     from cpslam.server.result import FinalResult
 
-__all__ = ["CollabRun", "LockstepBarrier", "evaluate_run", "print_summary", "run", "run_collab"]
+__all__ = ["CollabRun", "LockstepBarrier", "evaluate_run", "report_run", "run", "run_collab"]
 
 logger = logging.getLogger(__name__)
 
@@ -196,9 +196,10 @@ def run_collab(cfg: CpslamConfig, sequences: list[RGBDSequence], run_dir: Path,
                     interrupted=interrupted, nodes={n.agent_id: n for n in agents})
     out.evaluation = evaluate_run(out, sequences)
     if out.evaluation:
-        from cpslam.common.rundir import write_json
+        from cpslam.common.rundir import SCHEMA_VERSION, write_json
 
-        write_json(run_dir / "evaluation.json", out.evaluation)
+        write_json(run_dir / "evaluation.json", {"schema_version": SCHEMA_VERSION,
+                                                 **out.evaluation})
     return out
 
 
@@ -310,6 +311,8 @@ def run(
         "Run folder (default: run.out/run.name, timestamped).")] = None,
     overwrite: OverwriteOpt = False,
     no_progress: Annotated[bool, typer.Option("--no-progress", help="No progress bar.")] = False,
+    mesh: Annotated[bool, typer.Option("--mesh/--no-mesh", help="The report's TSDF mesh of "
+                                       "the fused map (RUN/mesh.ply).")] = True,
 ) -> None:
     """Run N agents and the server in one process over the in-memory bus.
 
@@ -319,7 +322,8 @@ def run(
 
     Writes RUN/config.yaml, RUN/agent_<id>/ (as cpslam-agent --standalone),
     RUN/trajectories/agent_<id>_local.tum (own frame) and _global.tum (group frame),
-    fused_map.ply, pose_graph.g2o, metrics.json and, with ground truth, evaluation.json.
+    fused_map.ply, pose_graph.g2o, metrics.json and, with ground truth, evaluation.json;
+    then the report of cpslam report (table, report.json, plots/, mesh.ply).
     RUN/agent_<id>/trajectory.tum is the final pose-graph-corrected trajectory (group frame),
     trajectory_odometry.tum the same frames without loop corrections. Ctrl-C (or SIGTERM)
     stops after the current frame and writes what was done (exit 130); again exits at once.
@@ -360,40 +364,15 @@ def run(
     with stop_on_signals() as stop:
         result = run_collab(cfg, sequences, run_dir, torch_device,
                             show_progress=not no_progress, stop=stop)
-    print_summary(result)
+    report_run(result, mesh=mesh, show_progress=not no_progress)
     if result.interrupted:
         raise typer.Exit(ExitCode.INTERRUPTED)
 
 
-def print_summary(result: CollabRun, command: str = "cpslam run") -> None:
-    """The per-agent table, the loops, merges and rounds, and the ATE with ground truth."""
-    from rich.console import Console
-    from rich.table import Table
+def report_run(result: CollabRun, command: str = "cpslam run", mesh: bool = True,
+               show_progress: bool = False) -> None:
+    """`cpslam report` of the run just finished (`cpslam.tools.report_cli.finish_run`)."""
+    from cpslam.tools.report_cli import finish_run
 
-    metrics = result.final.metrics
-    loops = metrics.get("loops", {})
-    ev = result.evaluation
-    table = Table(title=f"{command} → {result.run_dir}  ({result.wall_s:.0f} s)")
-    for col in ("agent", "frames", "group", "merged", "ATE origin (cm)", "no PGO (cm)"):
-        table.add_column(col)
-    for a in result.final.agents:
-        origin = ev.get("global_origin_rmse_m", {}).get(a.agent_id)
-        odo = ev.get("odometry_origin_rmse_m", {}).get(a.agent_id)
-        table.add_row(a.agent_id, str(result.frames.get(a.agent_id, 0)), a.group_id,
-                      "yes" if a.merged else "no", _cm(origin), _cm(odo))
-    console = Console()
-    console.print(table)
-    merges = metrics.get("merges", [])
-    console.print(
-        f"groups {len(metrics.get('groups', []))}, loops found {loops.get('found', 0)} / "
-        f"accepted {loops.get('accepted', 0)} / rejected {loops.get('rejected', 0)}, rounds "
-        f"{metrics.get('rounds', {}).get('closed', 0)}, merges at "
-        f"{[round(m['time'], 2) for m in merges]} s")
-    if "global_joint_se3_rmse_m" in ev:
-        console.print(f"joint se3 ATE of all global trajectories: "
-                      f"{_cm(ev['global_joint_se3_rmse_m'])} cm (without pose graph "
-                      f"{_cm(ev.get('odometry_joint_se3_rmse_m'))} cm)")
-
-
-def _cm(value: float | None) -> str:
-    return "-" if value is None else f"{100 * value:.2f}"
+    finish_run(result.run_dir, mesh=mesh, show_progress=show_progress,
+               title=f"{command} → {result.run_dir}  ({result.wall_s:.0f} s)")

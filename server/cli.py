@@ -63,14 +63,21 @@ def server(
         float, typer.Option("--persist-every", min=0.0,
                             help="Seconds between state writes (acks wait for the write).")
     ] = 1.0,
+    report: Annotated[
+        bool, typer.Option("--report/--no-report",
+                           help="After finalising, run cpslam report on the run folder when "
+                           "every agent's recorded sequence there has ground truth.")
+    ] = True,
 ) -> None:
     """Run the collaboration server: loops, group merges, federated decoders, pose graph.
 
     Agents connect with `cpslam-agent --connect tcp/HOST:PORT`. Outputs (on SIGINT, SIGTERM or
     `cpslam finalise`): RUN/trajectories/, fused_map.ply, pose_graph.g2o, metrics.json,
-    server.log. A second signal during finalisation exits at once with code 130 without
-    finalising (the state file is kept); the same signal repeated within 1 s is ignored, as
-    wrappers such as `timeout` that signal the whole process group deliver it twice. Torch
+    server.log; when the agents share RUN and their sequences have ground truth, the report
+    of cpslam report (report.json, plots/, mesh.ply; --no-report: not). A second signal
+    during finalisation exits at once with code 130 without finalising (the state file is
+    kept); the same signal repeated within 1 s is ignored, as wrappers such as `timeout`
+    that signal the whole process group deliver it twice. Torch
     uses every core this process may use (run.num_threads: auto); with agents on the same
     machine, give each process its share (--set run.num_threads=1 on two cores).
 
@@ -131,6 +138,24 @@ def server(
         return
     logger.info("finalised: agents %s -> %s", ", ".join(a.agent_id for a in result.agents),
                 run_dir)
+    if report:
+        _report(run_dir)
+
+
+def _report(run_dir: Path) -> None:
+    """`cpslam report RUN --if-ground-truth` in a process of its own: the report (plots,
+    mesh) belongs to the offline tools, which the daemon does not import, and its memory
+    is not the server's. A failed report is logged; the run itself succeeded."""
+    import subprocess
+    import sys
+
+    cmd = [sys.executable, "-m", "cpslam", "report", str(run_dir), "--if-ground-truth",
+           "--no-progress"]
+    logger.info("report: %s", " ".join(cmd))
+    code = subprocess.call(cmd)
+    if code != 0:
+        logger.warning("report of %s failed with exit code %d (run `cpslam report %s` to "
+                       "retry)", run_dir, code, run_dir)
 
 
 def _on_signals(stop: threading.Event) -> None:

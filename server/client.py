@@ -53,7 +53,10 @@ def status(
         fail(f"no cpslam-server answered on session {cfg.transport.session!r} within "
              f"{timeout:.0f} s", ExitCode.NO_SERVER)
     if as_json:
-        typer.echo(json.dumps(summary, indent=2, sort_keys=True))
+        from cpslam.common.rundir import SCHEMA_VERSION
+
+        typer.echo(json.dumps({"schema_version": SCHEMA_VERSION, **summary}, indent=2,
+                              sort_keys=True))
     else:
         typer.echo(format_status(summary))
 

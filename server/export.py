@@ -20,7 +20,7 @@ from pathlib import Path
 import torch
 
 from cpslam.common.ply import write_ply
-from cpslam.common.rundir import write_json
+from cpslam.common.rundir import SCHEMA_VERSION, write_json
 from cpslam.common.trajectory import write_tum
 from cpslam.server.result import FinalResult
 
@@ -57,6 +57,7 @@ def export_run(result: FinalResult, run_dir: str | Path) -> dict[str, Path]:
     if result.pose_graph is not None:
         result.pose_graph.export_g2o(run / "pose_graph.g2o")
         written["pose_graph.g2o"] = run / "pose_graph.g2o"
-    written["metrics.json"] = write_json(run / "metrics.json", result.metrics)
+    written["metrics.json"] = write_json(run / "metrics.json",
+                                         {"schema_version": SCHEMA_VERSION, **result.metrics})
     logger.info("exported %d files to %s", len(written), run)
     return written

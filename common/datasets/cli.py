@@ -106,7 +106,9 @@ def info(
     except DatasetError as e:
         fail(str(e))
     if as_json:
-        typer.echo(json.dumps(summary, indent=2))
+        from cpslam.common.rundir import SCHEMA_VERSION
+
+        typer.echo(json.dumps({"schema_version": SCHEMA_VERSION, **summary}, indent=2))
     else:
         typer.echo(format_summary(summary))
 

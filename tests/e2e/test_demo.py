@@ -46,10 +46,22 @@ def test_demo_tiny_end_to_end(tmp_path: Path) -> None:
         assert row["global_ate_m"] is not None
     assert report["all"]["joint_ate_m"] is not None
     assert report["mesh"]["triangles"] > 0
+    assert report["schema_version"] == 1 and report["kind"] == "collaborative"
+    assert report["recon"]["completion_ratio_pct"] > 0  # the synthetic scene's mesh
+    assert report["render"]["psnr_db"] > 0 and report["render"]["lpips"] is None
     assert "ATE glob" in done.stdout and "outputs in" in done.stdout
     if importlib.util.find_spec("rerun") is not None:  # the viz extra: the 3-D view too
         assert (out / "demo.rrd").stat().st_size > 10_000
         assert f"rerun {out / 'demo.rrd'}" in done.stdout
+
+    # `cpslam report` on the demo's folder (the daemons' shared --out, ground truth from what
+    # the agents recorded) prints the tables the demo printed: one report code path.
+    again = subprocess.run([sys.executable, "-m", "cpslam", "report", str(out), "--no-mesh",
+                            "--no-progress", "--render-views", "0"], capture_output=True,
+                           text=True, timeout=600, env={"COLUMNS": "120", **_env()})
+    assert again.returncode == 0, again.stdout + again.stderr
+    assert _tables(again.stdout) == _tables(done.stdout)
+    assert json.loads((out / "report.json").read_text())["agents"] == report["agents"]
     info = json.loads((out / "demo.json").read_text())
     assert info["frame_slice"] == "0:300:10" and info["wall_s"] > 0
     # `auto` threads: the server and the two agents divide the cores between them.
@@ -71,6 +83,15 @@ def test_demo_tiny_end_to_end(tmp_path: Path) -> None:
                            text=True, timeout=300, env=_env())
     assert again.returncode == 1 and "--timeout reached" in again.stderr, again.stderr
     assert not (out / "stale.txt").exists() and scene.stat().st_mtime_ns == stamp
+
+
+def _tables(text: str) -> list[str]:
+    """From the results table's header to the traffic table's end (the title and the
+    reporting process's memory differ between reports of one run)."""
+    lines = text.splitlines()
+    start = next(i for i, line in enumerate(lines) if line.split()[:2] == ["agent", "frames"])
+    stop = next(i for i, line in enumerate(lines) if line.startswith("peak memory"))
+    return [line.rstrip() for line in lines[start:stop]]
 
 
 def _env() -> dict[str, str]:

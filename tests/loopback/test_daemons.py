@@ -62,13 +62,20 @@ def test_two_agents_merge_over_tcp(tmp_path: Path, endpoint: str, apartment, dae
     assert summary is not None, server.tail()
     assert sorted(summary["agents"]) == ["0", "1"]
     finalise(endpoint, s)
-    assert server.wait(120) == 0, server.tail()
+    # Generous: after finalising, the server runs `cpslam report` (its mesh renders 40 views).
+    assert server.wait(900) == 0, server.tail()
     if viewer is not None:
         viewer.signal(signal.SIGINT)
         assert viewer.wait(60) == 0, viewer.tail()
         _check_live_view(live)
 
     metrics = json.loads((out / "metrics.json").read_text())
+    # The agents shared the server's folder and their sequences have ground truth: the
+    # server reported, finding the ground truth the agents recorded.
+    report = json.loads((out / "report.json").read_text())
+    assert report["ground_truth"] == {a: str(apartment.agent_dirs[int(a)].resolve())
+                                      for a in ("0", "1")}
+    assert report["all"]["joint_ate_m"] is not None and (out / "mesh.ply").is_file()
     assert len(metrics["groups"]) == 1, metrics["groups"]
     assert sorted(metrics["groups"][0]["members"]) == ["0", "1"]
     assert metrics["merges"] and metrics["rounds"]["closed"] >= 1, (metrics["rounds"],
@@ -105,7 +112,7 @@ def _check_live_view(path: Path) -> None:
 def test_late_joiner_and_killed_agent(tmp_path: Path, endpoint: str, apartment,
                                       daemons) -> None:
     out, s = tmp_path / "run", "faults"
-    server = Daemon("server", server_args(endpoint, s, out), tmp_path)
+    server = Daemon("server", server_args(endpoint, s, out, "--no-report"), tmp_path)
     victim = Daemon("agent0", agent_args(apartment.agent_dirs[0], "0", endpoint, s, out,
                                          "--frames", "0:120"), tmp_path)
     daemons.extend([server, victim])
@@ -135,7 +142,7 @@ def test_late_joiner_and_killed_agent(tmp_path: Path, endpoint: str, apartment,
 def test_server_restart_loses_nothing(tmp_path: Path, endpoint: str, apartment,
                                       daemons) -> None:
     out, s = tmp_path / "run", "restart"
-    first = Daemon("server1", server_args(endpoint, s, out), tmp_path)
+    first = Daemon("server1", server_args(endpoint, s, out, "--no-report"), tmp_path)
     agent = Daemon("agent0", agent_args(apartment.agent_dirs[0], "0", endpoint, s, out,
                                         "--frames", "0:90"), tmp_path)
     daemons.extend([first, agent])
@@ -145,7 +152,7 @@ def test_server_restart_loses_nothing(tmp_path: Path, endpoint: str, apartment,
     first.signal(signal.SIGKILL)
     first.proc.wait(10)
     assert (out / "server_state.pt").is_file()
-    second = Daemon("server2", server_args(endpoint, s, out), tmp_path)
+    second = Daemon("server2", server_args(endpoint, s, out, "--no-report"), tmp_path)
     daemons.append(second)
     assert agent.wait(600) == 0, agent.tail() + "\n" + second.tail()
     finalise(endpoint, s)

@@ -122,7 +122,7 @@ def test_server_and_agents_in_separate_network_namespaces(tmp_path: Path, namesp
                     height=120, seed=3)
     out, s = tmp_path / "run", "netns"
     in_ns = lambda ns: ["ip", "netns", "exec", ns]  # noqa: E731
-    server = Daemon("server", server_args(f"tcp/0.0.0.0:{PORT}", s, out), tmp_path,
+    server = Daemon("server", server_args(f"tcp/0.0.0.0:{PORT}", s, out, "--no-report"), tmp_path,
                     prefix=in_ns(names["server"]))
     agents = [Daemon(f"agent{a}", agent_args(data.agent_dirs[int(a)], a,
                                              f"tcp/{addresses[a][0]}:{PORT}", s, out),

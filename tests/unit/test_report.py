@@ -1,4 +1,5 @@
-"""The end-of-run report on a hand-made run folder: numbers, table, plots, missing mesh."""
+"""The end-of-run report on hand-made run folders: numbers, table, plots, missing mesh,
+ground truth found where the agents recorded it, `--gt` values, a lone agent's folder."""
 
 from __future__ import annotations
 
@@ -12,7 +13,9 @@ from rich.console import Console
 
 from cpslam.common.geometry import compose
 from cpslam.common.trajectory import write_tum
-from cpslam.tools.report import build_report, main_group, print_report
+from cpslam.tools.report import build_report, main_group
+from cpslam.tools.report_table import print_report
+from cpslam.tools.runfolder import parse_gt_options, recorded_sequences
 
 
 def _circle(n: int, phase: float) -> np.ndarray:
@@ -94,7 +97,7 @@ def test_report_numbers(run: tuple[Path, dict[str, Path]]) -> None:
     assert (total["loops_found"], total["loops_accepted"]) == (5, 2)
     for plot in report["plots"]:
         assert Path(plot).read_bytes()[:4] == b"\x89PNG"
-    assert "not found" in report["mesh"]["skipped"]
+    assert "fused_map.pt" in report["mesh"]["skipped"]
     assert json.loads((folder / "report.json").read_text())["all"]["groups"] == 1
     traffic = report["traffic"]
     assert traffic["agents"]["1"]["to_agent"]["group_decoder"]["bytes_per_s"] == 20_000.0
@@ -140,3 +143,55 @@ def test_main_group_is_the_largest() -> None:
                "refinement": [{"group": "b", "points": 10}, {"group": "c", "points": 20}]}
     assert main_group(metrics) == "c"
     assert main_group({}) is None
+
+
+def test_ground_truth_is_found_where_the_agents_recorded_it(
+        run: tuple[Path, dict[str, Path]], tmp_path: Path) -> None:
+    folder, seqs = run
+    for a, path in seqs.items():  # as write_agent_outputs records the sequence
+        metrics_path = folder / f"agent_{a}" / "metrics.json"
+        metrics = json.loads(metrics_path.read_text())
+        metrics["sequence"] = {"path": str(path), "format": "tum", "frames": 50}
+        metrics_path.write_text(json.dumps(metrics))
+    assert recorded_sequences(folder) == seqs
+    report = build_report(folder, mesh=False)
+    assert report["ground_truth"] == {a: str(p) for a, p in seqs.items()}
+    assert report["all"]["joint_ate_m"] == pytest.approx(0.015, abs=0.005)
+    # A recorded sequence that is gone is dropped; demo.json is read as well.
+    seqs["1"].unlink()
+    (folder / "demo.json").write_text(json.dumps({"sequences": {"7": str(seqs["0"])}}))
+    assert recorded_sequences(folder) == {"0": seqs["0"], "7": seqs["0"]}
+
+
+def test_gt_options_name_agents_or_take_them_in_order(tmp_path: Path) -> None:
+    assert parse_gt_options(["a", "1=b"], ["0", "1"]) == {"0": Path("a"), "1": Path("b")}
+    assert parse_gt_options(["robot-2=x"], ["robot-2"]) == {"robot-2": Path("x")}
+    with pytest.raises(ValueError, match="agent '5' is not in this run"):
+        parse_gt_options(["5=x"], ["0", "1"])
+    with pytest.raises(ValueError, match="more ground truths than the run's 1 agent"):
+        parse_gt_options(["a", "b"], ["0"])
+    odd = tmp_path / "x=y"  # an existing path holding "=" is a path
+    odd.mkdir()
+    assert parse_gt_options([str(odd)], ["0"]) == {"0": odd}
+
+
+def test_lone_agent_folder_has_no_server_part(run: tuple[Path, dict[str, Path]]) -> None:
+    folder, seqs = run
+    lone = folder.parent / "lone"
+    (lone / "agent_0").mkdir(parents=True)
+    (lone / "agent_0" / "trajectory.tum").write_text(
+        (folder / "trajectories" / "agent_0_local.tum").read_text())
+    report = build_report(lone, {"0": seqs["0"]}, mesh=False)
+    assert report["kind"] == "agent" and report["agents"]["0"]["frames"] == 50
+    assert report["agents"]["0"]["local_ate_m"] < 0.01 and "server" not in report["memory_mb"]
+    out = io.StringIO()
+    print_report(report, Console(file=out, width=100))
+    assert "one agent, no server" in out.getvalue()
+
+
+def test_unfinalised_server_folder_is_refused(run: tuple[Path, dict[str, Path]]) -> None:
+    folder, _ = run
+    (folder / "metrics.json").unlink()
+    (folder / "server_state.pt").write_bytes(b"")
+    with pytest.raises(FileNotFoundError, match="has not finalised"):
+        build_report(folder, mesh=False)

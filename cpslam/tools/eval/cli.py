@@ -15,8 +15,9 @@ from rich.table import Table
 
 from cpslam.common.cli import JsonOpt, OverwriteOpt, check_output, fail, out_option
 from cpslam.common.datasets.cli import FormatOpt, FramesOpt
+from cpslam.common.rundir import SCHEMA_VERSION
 from cpslam.common.trajectory import Trajectory
-from cpslam.tools.eval.ate import DEFAULT_MAX_DT, AteResult, evaluate_ate
+from cpslam.tools.eval.ate import DEFAULT_MAX_DT, AteResult, JointAteResult, evaluate_ate
 from cpslam.tools.eval.rpe import RpeResult, evaluate_rpe
 from cpslam.tools.eval.segments import SegmentedAte, reference_jumps, segmented_ate
 from cpslam.tools.eval.source import load_trajectory, locate_trajectory
@@ -33,28 +34,32 @@ class AlignMode(str, Enum):
 
 def ate(
     gt: Annotated[
-        Path,
+        list[Path],
         typer.Option(
-            "--gt", help="Ground truth: TUM file, run folder or dataset folder.", show_default=False
+            "--gt", help="Ground truth: TUM file, run folder or dataset folder (repeat with "
+            "--est for several agents).", show_default=False
         ),
     ],
     est: Annotated[
-        Path,
+        list[Path],
         typer.Option(
             "--est",
             help="Estimate: TUM file, run folder with one trajectory.tum (at the top or in "
-            "agent_*/) or dataset folder (its ground-truth poses).",
+            "agent_*/) or dataset folder (its ground-truth poses). The n-th --est goes with "
+            "the n-th --gt.",
             show_default=False,
         ),
     ],
     align: Annotated[
-        AlignMode,
+        AlignMode | None,
         typer.Option(
             "--align",
             help="origin: first poses coincide (the paper's protocol); se3/sim3: "
-            "least-squares rigid/similarity fit; none: same frame already.",
+            "least-squares rigid/similarity fit; none: same frame already. Default: origin "
+            "for one pair, se3 for several (one alignment for all).",
+            show_default=False,
         ),
-    ] = AlignMode.origin,
+    ] = None,
     max_dt: Annotated[
         float,
         typer.Option(
@@ -90,6 +95,10 @@ def ate(
     --est is a dataset folder (usually the ground truth); a selection keeps the sequence's
     own timestamps, so it lines up with an estimate of the same frames.
 
+    Several --gt/--est pairs (one per agent, the estimates in one shared frame such as
+    RUN/trajectories/agent_<id>_global.tum) are scored under ONE alignment fitted to all
+    pairs together: the joint ATE of a multi-robot system, with each pair's share of it.
+
     Examples:
 
       cpslam eval ate --gt runs/data/room/agent_0 --est runs/room
@@ -105,10 +114,21 @@ def ate(
       cpslam eval ate --gt ../shared/data/7scenes-kitchen-0-299 --est runs/kitchen --rpe 1 --rpe 10
 
       cpslam eval ate --gt ../shared/data/7scenes-kitchen-0-299 --est runs/kitchen --pieces
+
+      cpslam eval ate --gt data/apt/agent_0 --est runs/apt/trajectories/agent_0_global.tum
+      --gt data/apt/agent_1 --est runs/apt/trajectories/agent_1_global.tum
     """
     for path in (out, plot):
         if path is not None:
             check_output(path, overwrite)
+    if len(gt) != len(est):
+        fail(f"--gt and --est come in pairs: got {len(gt)} --gt and {len(est)} --est")
+    if len(gt) > 1:
+        if rpe or pieces:
+            fail("--rpe and --pieces score one trajectory; give one --gt/--est pair")
+        _joint(gt, est, align or AlignMode.se3, max_dt, fmt, frames, as_json, out, plot)
+        return
+    gt, est, align = gt[0], est[0], align or AlignMode.origin
     try:
         gt_kind, gt_file = locate_trajectory(gt)
         est_kind, est_file = locate_trajectory(est)
@@ -137,7 +157,8 @@ def ate(
     except (OSError, ValueError) as exc:
         fail(str(exc))
 
-    record = {"gt": str(gt_file), "est": str(est_file), **result.to_dict()}
+    record = {"schema_version": SCHEMA_VERSION, "gt": str(gt_file), "est": str(est_file),
+              **result.to_dict()}
     if rpes:
         record["rpe"] = [r.to_dict() for r in rpes]
     if split is not None:
@@ -157,6 +178,66 @@ def ate(
                 typer.echo(f"wrote {plot}")
     except OSError as exc:
         fail(str(exc))
+
+
+def _joint(gts: list[Path], ests: list[Path], align: AlignMode, max_dt: float,
+           fmt: str | None, frames: str | None, as_json: bool, out: Path | None,
+           plot: Path | None) -> None:
+    """Several pairs under one alignment: per-pair rows and the joint row."""
+    from cpslam.tools.eval.ate import joint_ate
+
+    try:
+        located = [(locate_trajectory(g), locate_trajectory(e)) for g, e in zip(
+            gts, ests, strict=True)]
+        if (fmt is not None or frames is not None) and all(
+                "dataset" not in (g[0], e[0]) for g, e in located):
+            raise ValueError("--format/--frames apply to dataset folders; every --gt and "
+                             "--est is a TUM trajectory file")
+        pairs = [(_load(g, gk, fmt, frames), _load(e, ek, fmt, frames))
+                 for g, e, ((gk, _), (ek, _)) in zip(gts, ests, located, strict=True)]
+        names = [(str(gf), str(ef)) for (_, gf), (_, ef) in located]
+        result = joint_ate(pairs, align=align.value, max_dt=max_dt, names=names)
+    except (OSError, ValueError) as exc:
+        fail(str(exc))
+    record = {"schema_version": SCHEMA_VERSION, "align": align.value,
+              "joint": result.overall.to_dict(),
+              "pairs": [{"gt": g, "est": e, **p.to_dict()}
+                        for (g, e), p in zip(names, result.parts, strict=True)]}
+    if as_json:
+        typer.echo(json.dumps(record, indent=2))
+    else:
+        _print_joint(result, names)
+    try:
+        if out is not None:
+            write_record(out, record, quiet=as_json)
+        if plot is not None:
+            from cpslam.tools.eval.plot import plot_ate
+
+            plot_ate(result.parts, plot, labels=[e for _, e in names],
+                     title=f"{len(names)} trajectories, one {align.value} alignment, joint "
+                           f"RMSE {100 * result.overall.rmse:.1f} cm")
+            if not as_json:
+                typer.echo(f"wrote {plot}")
+    except OSError as exc:
+        fail(str(exc))
+
+
+def _print_joint(result: JointAteResult, names: list[tuple[str, str]]) -> None:
+    table = Table(title=f"Absolute trajectory error, {len(names)} pairs under one "
+                  f"{result.overall.align} alignment", title_justify="left")
+    for col in ("estimate", "ground truth", "pairs", "RMSE cm", "mean cm", "max cm",
+                "rot RMSE deg"):
+        table.add_column(col, justify="left" if col in ("estimate", "ground truth") else "right")
+    for (g, e), r in zip(names, result.parts, strict=True):
+        table.add_row(e, g, str(r.n_pairs), f"{100 * r.rmse:.2f}", f"{100 * r.mean:.2f}",
+                      f"{100 * r.max:.2f}", f"{r.rot_rmse_deg:.2f}")
+    r = result.overall
+    table.add_section()
+    table.add_row("joint", "", str(r.n_pairs), f"{100 * r.rmse:.2f}", f"{100 * r.mean:.2f}",
+                  f"{100 * r.max:.2f}", f"{r.rot_rmse_deg:.2f}")
+    Console().print(table)
+    if r.align == "sim3":
+        Console().print(f"scale {r.scale:.4f}")
 
 
 def write_record(path: Path, record: dict, quiet: bool = False) -> None:

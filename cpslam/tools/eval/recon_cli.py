@@ -14,6 +14,7 @@ from rich.console import Console
 from rich.table import Table
 
 from cpslam.common.cli import JsonOpt, OverwriteOpt, check_output, fail, out_option
+from cpslam.common.rundir import SCHEMA_VERSION
 
 if TYPE_CHECKING:
     from cpslam.common.datasets import RGBDSequence
@@ -121,8 +122,8 @@ def recon(
     except (OSError, ValueError) as exc:
         fail(str(exc))
 
-    record = {"gt": str(gt), "est": str(est), "cull_to": cull_to and str(cull_to),
-              **result.to_dict()}
+    record = {"schema_version": SCHEMA_VERSION, "gt": str(gt), "est": str(est),
+              "cull_to": cull_to and str(cull_to), **result.to_dict()}
     if as_json:
         typer.echo(json.dumps(record, indent=2))
     else:

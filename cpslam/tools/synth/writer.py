@@ -25,6 +25,7 @@ import numpy as np
 import yaml
 
 from cpslam.common.logs import progress
+from cpslam.common.rundir import SCHEMA_VERSION
 from cpslam.tools.synth.render import Renderer, default_intrinsics, kinect_noise
 from cpslam.tools.synth.scene import SCENES, Scene, build_scene
 from cpslam.tools.synth.texture import shade
@@ -120,7 +121,8 @@ def generate(
     scene_json = out / "scene.json"
     args = {"scene": scene, "agents": agents, "frames": frames, "width": width,
             "height": height, "seed": seed, "noise": noise, "loop": loop, "fps": float(fps)}
-    scene_json.write_text(json.dumps(_summary(world, args, camera, poses), indent=2) + "\n")
+    scene_json.write_text(json.dumps({"schema_version": SCHEMA_VERSION,
+                                      **_summary(world, args, camera, poses)}, indent=2) + "\n")
     total = time.perf_counter() - t_start
     per_frame = render_seconds / max(1, len(jobs))
     logger.info("wrote %d agent(s) x %d frames to %s (%.1f ms per frame)", agents, frames, out,
