@@ -10,6 +10,7 @@ from __future__ import annotations
 from cpslam.common.cli import App
 from cpslam.common.config.cli import presets as config_presets
 from cpslam.common.config.cli import show as config_show
+from cpslam.common.datasets.cli import gt as dataset_gt
 from cpslam.common.datasets.cli import info as dataset_info
 from cpslam.demo import demo
 from cpslam.run import run as run_command
@@ -33,7 +34,8 @@ app = App(
 )
 dataset_app = App(no_args_is_help=True, help="Inspect and generate RGB-D sequences.\n\n"
                   "Examples:\n\n  cpslam dataset info runs/data/room/agent_0 --json\n\n"
-                  "  cpslam dataset synth --scene room --loop --out runs/data/room")
+                  "  cpslam dataset synth --scene room --loop --out runs/data/room\n\n"
+                  "  cpslam dataset gt runs/data/room/agent_0 --out gt.tum")
 eval_app = App(no_args_is_help=True, help="Evaluate trajectories, meshes and renders against "
                "ground truth.\n\n"
                "Examples:\n\n  cpslam eval ate --gt runs/data/room/agent_0 --est runs/room\n\n"
@@ -49,6 +51,7 @@ app.add_typer(secure_app, name="secure")
 
 dataset_app.command("info")(dataset_info)
 dataset_app.command("synth")(dataset_synth)
+dataset_app.command("gt")(dataset_gt)
 eval_app.command("ate")(eval_ate)
 eval_app.command("recon")(eval_recon)
 eval_app.command("render")(eval_render)

@@ -1,4 +1,5 @@
-"""`cpslam dataset info`: what a sequence folder holds, as text or JSON.
+"""`cpslam dataset info`: what a sequence folder holds, as text or JSON; `cpslam dataset gt`:
+its ground truth as a TUM file (for evo and other tools).
 
 The lead's umbrella CLI registers `info` as a command; heavy imports stay inside functions so
 that `cpslam --help` does not pay for them. `FormatOpt` and `FramesOpt` are the options of
@@ -16,7 +17,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
-from cpslam.common.cli import JsonOpt, fail
+from cpslam.common.cli import JsonOpt, OverwriteOpt, check_output, fail
 
 if TYPE_CHECKING:
     from cpslam.common.datasets.base import RGBDSequence
@@ -111,6 +112,55 @@ def info(
         typer.echo(json.dumps({"schema_version": SCHEMA_VERSION, **summary}, indent=2))
     else:
         typer.echo(format_summary(summary))
+
+
+def gt(
+    path: Annotated[Path, typer.Argument(help="Sequence folder, or a bag (ROS 1 .bag, .mcap, "
+                                         ".db3, ROS 2 bag folder).", show_default=False)],
+    out: Annotated[Path, typer.Option("--out", "-o", help="The TUM file to write.",
+                                      show_default=False)],
+    format: FormatOpt = None,
+    frames: FramesOpt = None,
+    overwrite: OverwriteOpt = False,
+    topic_rgb: TopicRgbOpt = None,
+    topic_depth: TopicDepthOpt = None,
+    topic_info: TopicInfoOpt = None,
+    topic_pose: TopicPoseOpt = None,
+) -> None:
+    """Write a sequence's ground truth as a TUM file, for evo and other tools.
+
+    One line (`stamp tx ty tz qx qy qz qw`) per frame that has a ground-truth pose, with the
+    frames' own timestamps, to compare with a run's trajectory.tum (docs/evaluation.md).
+
+    Examples:
+
+      cpslam dataset gt runs/data/room/agent_0 --out gt.tum
+
+      cpslam dataset gt ../shared/data/7scenes-kitchen-0-299 --frames 0:100 --out gt.tum
+
+      cpslam dataset gt robot.bag --topic-pose /vicon/camera --out gt.tum
+    """
+    import numpy as np
+
+    from cpslam.common.datasets import DatasetError, open_sequence
+    from cpslam.common.trajectory import write_tum
+
+    check_output(out, overwrite)
+    try:
+        sequence = open_sequence(path, fmt=format, frames=frames,
+                                 topics=topics_arg(topic_rgb, topic_depth, topic_info,
+                                                   topic_pose))
+    except DatasetError as e:
+        fail(str(e))
+    poses = sequence.gt_poses()
+    if poses is None:
+        fail(f"{path}: the sequence has no ground truth (expected a ground-truth file of its "
+             f"format, or a pose topic for a bag)")
+    known = np.all(np.isfinite(poses.reshape(len(poses), 16)), axis=1)
+    if not known.any():
+        fail(f"{path}: no frame of the selection has a ground-truth pose")
+    write_tum(out, np.asarray(sequence.timestamps, dtype=np.float64)[known], poses[known])
+    typer.echo(f"{int(known.sum())}/{len(sequence)} frames with ground truth → {out}")
 
 
 def summarize(sequence: RGBDSequence, samples: int = 5) -> dict[str, Any]:

@@ -75,3 +75,38 @@ def test_info_on_kitchen(kitchen_path: Path) -> None:
     assert 1.0 < summary["ground_truth"]["trajectory_length_m"] < 4.0
     text = CliRunner().invoke(app, ["info", str(kitchen_path)])
     assert text.exit_code == 0 and "7scenes" in text.output and "640x480" in text.output
+
+
+def test_dataset_gt_writes_what_evo_scores_as_we_do(kitchen_path: Path, tmp_path: Path) -> None:
+    """`cpslam dataset gt` writes the ground truth as TUM; evo's APE on it and an estimate
+    equals `cpslam eval ate` on the sequence folder itself (the commands docs/evaluation.md
+    gives)."""
+    from evo.core import metrics, sync
+    from evo.tools import file_interface
+
+    from cpslam.common.datasets.cli import gt
+    from cpslam.common.geometry import se3_exp
+    from cpslam.common.trajectory import write_tum
+    from cpslam.tools.eval import evaluate_ate
+
+    app = typer.Typer()
+    app.command()(gt)
+    out = tmp_path / "gt.tum"
+    result = CliRunner().invoke(app, [str(kitchen_path), "--frames", "0:60", "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    assert "60/60 frames" in result.output
+    again = CliRunner().invoke(app, [str(kitchen_path), "--out", str(out)])
+    assert again.exit_code == 2 and "--overwrite" in again.output
+
+    seq = open_sequence(kitchen_path, frames="0:60")
+    rng = np.random.default_rng(0)
+    est = np.stack([T @ se3_exp(rng.normal(0, 0.01, 6)) for T in seq.gt_poses()])
+    write_tum(tmp_path / "est.tum", seq.timestamps, est)
+    ref = file_interface.read_tum_trajectory_file(str(out))
+    traj = file_interface.read_tum_trajectory_file(str(tmp_path / "est.tum"))
+    ref, traj = sync.associate_trajectories(ref, traj, max_diff=0.01)
+    traj.align(ref)
+    ape = metrics.APE(metrics.PoseRelation.translation_part)
+    ape.process_data((ref, traj))
+    ours = evaluate_ate(seq.timestamps, seq.gt_poses(), seq.timestamps, est, align="se3")
+    assert ape.get_statistic(metrics.StatisticsType.rmse) == pytest.approx(ours.rmse, abs=1e-6)

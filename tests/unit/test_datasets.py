@@ -514,3 +514,28 @@ def test_info_camera_overrides_from_the_command_line(tmp_path) -> None:
     assert result.exit_code == 2 and "expected KEY=NUMBER" in result.output
     result = CliRunner().invoke(app, [seq, "--camera", "focal=3"])
     assert result.exit_code == 2 and "focal" in result.output
+
+
+def test_dataset_gt_writes_the_frames_that_have_ground_truth(tum_root: Path,
+                                                             tmp_path: Path) -> None:
+    from cpslam.common.datasets.cli import gt
+    from cpslam.common.trajectory import read_tum
+
+    app = typer.Typer()
+    app.command()(gt)
+    seq = open_sequence(tum_root)
+    poses = seq.gt_poses()
+    known = np.isfinite(poses[:, 0, 0])
+    assert 0 < known.sum() < len(seq)  # the fixture's ground truth ends early
+    out = tmp_path / "gt.tum"
+    result = CliRunner().invoke(app, [str(tum_root), "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    assert f"{known.sum()}/{len(seq)} frames" in result.output
+    stamps, written = read_tum(out)
+    np.testing.assert_allclose(stamps, np.asarray(seq.timestamps)[known], atol=1e-6)
+    np.testing.assert_allclose(written, poses[known], atol=1e-8)
+
+    (tum_root / "groundtruth.txt").unlink()
+    result = CliRunner().invoke(app, [str(tum_root), "--out", str(tmp_path / "none.tum")])
+    assert result.exit_code == 2 and "no ground truth" in result.output
+    assert not (tmp_path / "none.tum").exists()
