@@ -22,6 +22,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -78,8 +79,10 @@ class ServerPresence:
 
 def run_networked(cfg: CpslamConfig, seq: RGBDSequence, agent_id: str, run_dir: Path,
                   device: str, wait_timeout_s: float = 300.0, ack_timeout_s: float = 120.0,
-                  show_progress: bool = True, stop: threading.Event | None = None) -> int:
-    """Run one agent against a server; returns the exit code (see the module docstring)."""
+                  show_progress: bool = True, stop: threading.Event | None = None,
+                  on_frame: Callable[..., None] | None = None) -> int:
+    """Run one agent against a server; returns the exit code (see the module docstring).
+    `on_frame(frame, result, odometry)` is called after each frame (`run.rerun`)."""
     import torch
 
     from cpslam.agent.node import AgentNode
@@ -126,6 +129,8 @@ def run_networked(cfg: CpslamConfig, seq: RGBDSequence, agent_id: str, run_dir: 
                     joins_seen = _resend_after_rejoin(node, presence, joins_seen)
                     node.poll()
                     result = node.step(frame)
+                    if on_frame is not None:
+                        on_frame(frame, result, node.odometry)
                     fps = (i + 1) / max(time.perf_counter() - t0, 1e-9)
                     away = "" if presence.up else "  (server away)"
                     bar.update(task, advance=1, info=f"{fps:.2f} fps  loss "

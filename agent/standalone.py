@@ -10,7 +10,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -88,12 +88,14 @@ def run_standalone(
     resume: Path | None = None,
     show_progress: bool = True,
     stop: threading.Event | None = None,
+    on_frame: Callable[[RGBDFrame, FrameResult, Odometry], None] | None = None,
 ) -> StandaloneResult:
     """Run the odometry over `seq` and write `run_dir/agent_<id>/…` and `run_dir/config.yaml`.
 
     `stop` (set by a signal handler: `common.cli.stop_on_signals`) ends the run after the
     frame in progress; what was done is written and the result says it was interrupted. A
-    frame is never cut in half, so the trajectory, the map and the metrics agree."""
+    frame is never cut in half, so the trajectory, the map and the metrics agree. `on_frame`
+    is called after each frame (a viewer's recorder: `run.rerun`)."""
     import torch
 
     from cpslam.agent.odometry import Odometry
@@ -128,6 +130,8 @@ def run_standalone(
                 break
             result = odometry.step(frame)
             results.append(result)
+            if on_frame is not None:
+                on_frame(frame, result, odometry)
             fps = len(results) / max(time.perf_counter() - t0, 1e-9)
             bar.update(task, advance=1, info=f"frame {result.index}  {fps:.2f} fps  "
                        f"loss {result.track_loss:.4f}  points {result.n_points}")

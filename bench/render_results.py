@@ -190,7 +190,21 @@ def _collab(report: dict) -> str:
             + _table(rows) + "\n" + note)
 
 
-RENDERERS = {"odometry": _odometry, "loop_edges": _loop_edges, "collab": _collab}
+def _rerun_overhead(report: dict) -> str:
+    rows = [("run", "s/frame off / save", "CPU s/frame off / save", "live.rrd MB")]
+    for i, (off, save) in enumerate(zip(report["runs"]["off"], report["runs"]["save"],
+                                        strict=True)):
+        rows.append((i, f"{off['s_per_frame']} / {save['s_per_frame']}",
+                     f"{off['cpu_s_per_frame']} / {save['cpu_s_per_frame']}", save["rrd_mb"]))
+    r = report["ratio_save_over_off"]
+    return (f"Preset `{report['preset']}`, {report['frames']} synthetic frames, lock-step, one "
+            "torch thread; the two settings alternate.\n\n" + _table(rows)
+            + f"\n\nMedian ratio with / without logging: {r['s_per_frame']} (wall), "
+            f"{r['cpu_s_per_frame']} (CPU).\n")
+
+
+RENDERERS = {"odometry": _odometry, "loop_edges": _loop_edges, "collab": _collab,
+             "rerun_overhead": _rerun_overhead}
 
 
 if __name__ == "__main__":

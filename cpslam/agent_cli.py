@@ -190,9 +190,15 @@ def agent(
                                      not no_progress))
     from cpslam.common.cli import stop_on_signals
 
-    with stop_on_signals() as stop:
-        result = run_standalone(cfg, sequence, run_dir, torch_device, agent_id=agent_id,
-                                resume=resume, show_progress=not no_progress, stop=stop)
+    recorder = _recorder(cfg, agent_id, run_dir)
+    try:
+        with stop_on_signals() as stop:
+            result = run_standalone(cfg, sequence, run_dir, torch_device, agent_id=agent_id,
+                                    resume=resume, show_progress=not no_progress, stop=stop,
+                                    on_frame=recorder)
+    finally:
+        if recorder is not None:
+            recorder.close()
     typer.echo(f"{result.frames_done}/{result.frames_total} frames in {result.wall_time_s:.1f} s "
                f"→ {result.agent_dir}")
     if result.interrupted:
@@ -227,9 +233,28 @@ def _networked(cfg, sequence, agent_id: str, run_dir: Path, device: str, wait_ti
 
     log_to_file(run_dir / f"agent_{agent_id}" / "agent.log")
     save_config(cfg, run_dir / f"agent_{agent_id}" / "config.yaml")
-    with stop_on_signals() as stop:
-        return run_networked(cfg, sequence, agent_id, run_dir, device, wait_timeout,
-                             ack_timeout, show_progress, stop)
+    recorder = _recorder(cfg, agent_id, run_dir)
+    try:
+        with stop_on_signals() as stop:
+            return run_networked(cfg, sequence, agent_id, run_dir, device, wait_timeout,
+                                 ack_timeout, show_progress, stop, on_frame=recorder)
+    finally:
+        if recorder is not None:
+            recorder.close()
+
+
+def _recorder(cfg, agent_id: str, run_dir: Path):
+    """The agent's Rerun recorder when `run.rerun` is on (rerun is imported only then); a
+    missing viz extra is a usage error, before any work."""
+    if cfg.run.rerun is None:
+        return None
+    from cpslam.tools.view import RerunMissingError
+    from cpslam.tools.view.agent_log import AgentRecorder
+
+    try:
+        return AgentRecorder.from_config(cfg.run, agent_id, run_dir / f"agent_{agent_id}")
+    except RerunMissingError as err:
+        fail(f"run.rerun={cfg.run.rerun}: {err}")
 
 
 def _check_certificate(cert: Path, agent_id: str) -> None:

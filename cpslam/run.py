@@ -117,7 +117,8 @@ def run_collab(cfg: CpslamConfig, sequences: list[RGBDSequence], run_dir: Path,
                show_progress: bool = True, describe: Any = None,
                stop: threading.Event | None = None) -> CollabRun:
     """Run one agent per sequence and the server in lock-step; write everything to run_dir.
-    A set `stop` ends the frames early; what was done is still optimised and written."""
+    A set `stop` ends the frames early; what was done is still optimised and written. With
+    `run.rerun` on, each agent logs itself to Rerun (`cpslam.tools.view.agent_log`)."""
     import torch
 
     from cpslam.agent.node import AgentNode
@@ -147,6 +148,7 @@ def run_collab(cfg: CpslamConfig, sequences: list[RGBDSequence], run_dir: Path,
         barrier = LockstepBarrier(buses[0], server.session)
         streams = [node.frames() for node in agents]
         total = max(len(s) for s in sequences)
+        recorders = _recorders(cfg, ids, run_dir)
 
         def exchange() -> None:
             barrier.wait()
@@ -165,12 +167,17 @@ def run_collab(cfg: CpslamConfig, sequences: list[RGBDSequence], run_dir: Path,
                     break
                 for node, stream, seq in zip(agents, streams, sequences, strict=True):
                     if t < len(seq):
-                        node.step(next(stream))
+                        frame = next(stream)
+                        result = node.step(frame)
+                        if node.agent_id in recorders:
+                            recorders[node.agent_id](frame, result, node.odometry)
                 exchange()
                 clock[0] = (t + 1) * period
                 status = server.backend.status()
                 bar.update(task, advance=1, info=f"groups {len(status['groups'])}  loops "
                            f"{status['loops']['accepted']}/{status['loops']['found']}")
+        for recorder in recorders.values():
+            recorder.close()
         for node in agents:
             node.flush()
         exchange()
@@ -232,6 +239,16 @@ def evaluate_run(result: CollabRun, sequences: list[RGBDSequence]) -> dict[str, 
     merges = result.final.metrics.get("merges", [])
     out["merge_time_s"] = [m["time"] for m in merges]
     return out
+
+
+def _recorders(cfg: CpslamConfig, ids: list[str], run_dir: Path) -> dict[str, Any]:
+    """Each agent's Rerun recorder when `run.rerun` is on (imports rerun only then)."""
+    if cfg.run.rerun is None:
+        return {}
+    from cpslam.tools.view.agent_log import AgentRecorder
+
+    return {aid: AgentRecorder.from_config(cfg.run, aid, run_dir / f"agent_{aid}")
+            for aid in ids}
 
 
 def _frame_period(seq: RGBDSequence) -> float:

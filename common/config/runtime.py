@@ -131,6 +131,12 @@ class RunConfig(Section):
     """Ask torch for deterministic algorithms (slower on GPU)."""
     schedule: Literal["concurrent", "lockstep"] = "concurrent"
     """concurrent: mapping on a thread of its own; lockstep: inline, repeats bit for bit."""
+    rerun: Literal["save", "spawn", "connect"] | None = None
+    """Agents log to Rerun while running (cpslam[viz]): save = agent_<id>/live.rrd; null = no."""
+    rerun_url: str = "rerun+http://127.0.0.1:9876/proxy"
+    """Viewer that rerun: connect sends to (Rerun's gRPC URL)."""
+    rerun_every_s: PositiveFloat = 2.0
+    """Seconds between logs of an agent's map points and trajectory line (poses: every frame)."""
 
     @field_validator("device")
     @classmethod

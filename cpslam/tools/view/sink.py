@@ -56,14 +56,17 @@ class Intrinsics:
 
 
 def open_recording(name: str, save: Path | None = None, web: bool = False,
-                   web_port: int | None = None) -> Any:
+                   web_port: int | None = None, connect: str | None = None) -> Any:
     """A `rerun.RecordingStream` with the cpslam layout, sent to `save` (an ``.rrd`` file),
-    to a web viewer served from this process (`web`), or else to a spawned native viewer."""
+    to a web viewer served from this process (`web`), to a running viewer at `connect` (its
+    gRPC URL), or else to a spawned native viewer."""
     rr = import_rerun()
     rec = rr.RecordingStream(APP_ID, recording_id=name)
     if save is not None:
         Path(save).parent.mkdir(parents=True, exist_ok=True)
         rec.save(str(save), default_blueprint=_blueprint())
+    elif connect is not None:
+        rec.connect_grpc(connect, default_blueprint=_blueprint())
     elif web:
         url = rec.serve_grpc(default_blueprint=_blueprint())
         rr.serve_web_viewer(web_port=web_port, open_browser=False, connect_to=url)
