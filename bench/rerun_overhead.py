@@ -4,7 +4,9 @@ per frame with and without it, on one synthetic sequence, the two settings alter
 
 The agent runs in lock-step (`run.schedule=lockstep`), so both settings do the same SLAM work
 bit for bit and differ only by the logging; the printed ratio is the median of
-with / without over the repeats.
+with / without over the repeats. Because that ratio carries the machine's noise, the runs
+with logging also time the recorder's own calls (wall and CPU seconds inside them, per
+frame): the part of a frame that logging takes on the agent's thread, whatever the load.
 
 Usage: python bench/rerun_overhead.py [--frames 30] [--repeats 3] [--preset cpu]
            [--json bench/results/rerun-overhead.json]
@@ -53,9 +55,17 @@ def main() -> None:
                     f"run.rerun={'null' if mode == 'off' else mode}"])
                 out = Path(tmp) / f"{mode}-{repeat}"
                 recorder = AgentRecorder.from_config(cfg.run, "0", out / "agent_0")
+                inside = [0.0, 0.0]
+
+                def on_frame(*args, recorder=recorder, inside=inside) -> None:
+                    w, c = time.perf_counter(), time.thread_time()
+                    recorder(*args)
+                    inside[0] += time.perf_counter() - w
+                    inside[1] += time.thread_time() - c
+
                 t0, c0 = time.perf_counter(), time.process_time()
                 result = run_standalone(cfg, seq, out, "cpu", show_progress=False,
-                                        on_frame=recorder)
+                                        on_frame=on_frame if recorder is not None else None)
                 if recorder is not None:
                     recorder.close()
                 wall, cpu = time.perf_counter() - t0, time.process_time() - c0
@@ -64,11 +74,15 @@ def main() -> None:
                     "s_per_frame": round(wall / result.frames_done, 4),
                     "cpu_s_per_frame": round(cpu / result.frames_done, 4),
                     "rrd_mb": round(rrd.stat().st_size / 1e6, 3) if rrd.exists() else None,
+                    "recorder_s_per_frame": round(inside[0] / result.frames_done, 5),
+                    "recorder_cpu_s_per_frame": round(inside[1] / result.frames_done, 5),
                 })
                 print(f"repeat {repeat} {mode:>4}: {runs[mode][-1]}", flush=True)
     ratios = {key: round(statistics.median(
         s[key] / o[key] for s, o in zip(runs["save"], runs["off"], strict=True)), 3)
         for key in ("s_per_frame", "cpu_s_per_frame")}
+    ratios["recorder_share"] = round(statistics.median(
+        s["recorder_s_per_frame"] / s["s_per_frame"] for s in runs["save"]), 4)
     report = {**bench_header("rerun_overhead", sys.argv), "preset": args.preset,
               "frames": args.frames, "repeats": args.repeats, "runs": runs,
               "ratio_save_over_off": ratios}
