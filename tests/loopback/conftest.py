@@ -116,3 +116,12 @@ def spawn() -> Iterator[Callable[..., Peer]]:
     for peer in peers:
         if peer.proc.poll() is None:
             peer.kill()
+
+
+@pytest.fixture
+def daemons() -> Iterator[list]:
+    """Daemons a test starts (`tests/loopback/daemons.Daemon`), killed at teardown."""
+    started: list = []
+    yield started
+    for d in started:
+        d.kill()

@@ -31,14 +31,6 @@ VIZ = importlib.util.find_spec("rerun") is not None
 pytest.importorskip("open3d")  # the synthetic renderer
 
 
-@pytest.fixture
-def daemons():
-    started: list[Daemon] = []
-    yield started
-    for d in started:
-        d.kill()
-
-
 def test_two_agents_merge_over_tcp(tmp_path: Path, endpoint: str, apartment, daemons) -> None:
     from cpslam.common.datasets import open_sequence
     from cpslam.common.trajectory import read_tum

@@ -41,14 +41,6 @@ def tls_endpoint() -> str:
     return f"tls/localhost:{free_port()}"
 
 
-@pytest.fixture
-def daemons():
-    started: list[Daemon] = []
-    yield started
-    for d in started:
-        d.kill()
-
-
 def _client(bundle: Path, role: str, endpoint: str) -> ZenohBus:
     cfg = load_config("tiny", bundle / f"{role}.yaml", [f"transport.connect={endpoint}",
                                                         "transport.open_timeout_s=5"], env={})
