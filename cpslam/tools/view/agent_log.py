@@ -60,7 +60,6 @@ class AgentRecorder:
         self._clock = clock
         self._last_full: float | None = None
         self._xyz: list[np.ndarray] = []
-        self.frames = 0
 
     def __call__(self, frame: Any, result: Any, odometry: Any) -> None:
         """Log one processed frame (`RGBDFrame` at processing resolution, its `FrameResult`,
@@ -75,7 +74,6 @@ class AgentRecorder:
                                 Intrinsics(k.fx, k.fy, k.cx, k.cy, k.width, k.height),
                                 frame.rgb, static=False)
         self.scene.scalar(f"agents/{self.agent_id}/track_loss", result.track_loss)
-        self.frames += 1
         now = self._clock()
         if self._last_full is None or now - self._last_full >= self.every_s:
             self._last_full = now
@@ -88,10 +86,8 @@ class AgentRecorder:
             return None
         return cls(agent_id, run.rerun, agent_dir, run.rerun_url, every_s=run.rerun_every_s)
 
-    def close(self, odometry: Any | None = None) -> None:
-        """Log the last trajectory and map, then flush and close the recording."""
-        if odometry is not None and self.frames:
-            self._full(odometry)
+    def close(self) -> None:
+        """Flush and close the recording."""
         self.scene.close()
         if self.path is not None:
             logger.info("Rerun recording of agent %s: %s (open it with: rerun %s)",
