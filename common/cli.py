@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import os
 import signal
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -22,7 +24,7 @@ import typer
 from typer.core import TyperCommand, TyperGroup
 
 __all__ = ["App", "ExitCode", "JsonOpt", "OverwriteOpt", "check_output", "fail",
-           "out_option", "signal_handler", "stop_on_signals", "verbosity"]
+           "interruptible", "out_option", "signal_handler", "stop_on_signals", "verbosity"]
 
 logger = logging.getLogger(__name__)
 
@@ -75,6 +77,46 @@ def stop_on_signals() -> Iterator[threading.Event]:
     finally:
         for sig, old in previous.items():
             signal.signal(sig, old)
+
+
+def interruptible(fn: Callable[[], Any], what: str) -> Any:
+    """`fn()` on a worker thread, so that SIGINT/SIGTERM never raise inside it: an exception
+    raised asynchronously inside a C extension's import or call (matplotlib, Open3D) can
+    abort the interpreter at exit. A signal logs that `what` was interrupted and exits at
+    once with `ExitCode.INTERRUPTED`, skipping interpreter clean-up: only for work that
+    holds nothing to save (a report of outputs already written). Off the main thread, where
+    Python allows no handlers, `fn` simply runs."""
+    if threading.current_thread() is not threading.main_thread():
+        return fn()
+    done = threading.Event()
+    outcome: dict[str, Any] = {}
+
+    def work() -> None:
+        try:
+            outcome["value"] = fn()
+        except BaseException as err:  # noqa: BLE001 - re-raised on the calling thread
+            outcome["error"] = err
+        finally:
+            done.set()
+
+    def handler(signum: int, _frame: object) -> None:
+        logger.warning("%s: %s interrupted, exiting", signal.Signals(signum).name, what)
+        for h in logging.getLogger().handlers:
+            h.flush()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(int(ExitCode.INTERRUPTED))
+
+    previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        threading.Thread(target=work, name=what, daemon=True).start()
+        done.wait()  # a lock wait that signal handlers interrupt (POSIX)
+    finally:
+        for sig, old in previous.items():
+            signal.signal(sig, old)
+    if "error" in outcome:
+        raise outcome["error"]
+    return outcome.get("value")
 
 
 def signal_handler(stop: threading.Event, *, window_s: float, action: str,

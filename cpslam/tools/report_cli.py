@@ -10,7 +10,7 @@ from typing import Annotated, Any
 
 import typer
 
-from cpslam.common.cli import JsonOpt, fail
+from cpslam.common.cli import JsonOpt, fail, interruptible
 
 logger = logging.getLogger(__name__)
 
@@ -29,9 +29,12 @@ def finish_run(run: Path, sequences: dict[str, Path] | None = None, mesh: bool =
     from cpslam.tools.report_table import print_outputs, print_report
 
     console = console or Console()
-    report = build_report(run, sequences, mesh=mesh, show_progress=show_progress,
-                          process=process,
-                          render_views=RENDER_VIEWS if render_views is None else render_views)
+    # Ctrl-C during a report leaves the run as it is; `cpslam report RUN` makes it again.
+    report = interruptible(
+        lambda: build_report(run, sequences, mesh=mesh, show_progress=show_progress,
+                             process=process, render_views=RENDER_VIEWS
+                             if render_views is None else render_views),
+        f"the report of {run} (cpslam report {run} makes it again)")
     print_report(report, console, title)
     if outputs:
         print_outputs(report, console)
