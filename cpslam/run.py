@@ -157,27 +157,29 @@ def run_collab(cfg: CpslamConfig, sequences: list[RGBDSequence], run_dir: Path,
             for node in agents:
                 node.poll()
 
-        with make_progress(disable=not show_progress) as bar:
-            task = bar.add_task("agents " + ",".join(ids), total=total, info="")
-            for t in range(total):
-                if stop is not None and stop.is_set():
-                    interrupted = True
-                    logger.warning("stopped after %d of %d frames: writing what was done", t,
-                                   total)
-                    break
-                for node, stream, seq in zip(agents, streams, sequences, strict=True):
-                    if t < len(seq):
-                        frame = next(stream)
-                        result = node.step(frame)
-                        if node.agent_id in recorders:
-                            recorders[node.agent_id](frame, result, node.odometry)
-                exchange()
-                clock[0] = (t + 1) * period
-                status = server.backend.status()
-                bar.update(task, advance=1, info=f"groups {len(status['groups'])}  loops "
-                           f"{status['loops']['accepted']}/{status['loops']['found']}")
-        for recorder in recorders.values():
-            recorder.close()
+        try:
+            with make_progress(disable=not show_progress) as bar:
+                task = bar.add_task("agents " + ",".join(ids), total=total, info="")
+                for t in range(total):
+                    if stop is not None and stop.is_set():
+                        interrupted = True
+                        logger.warning("stopped after %d of %d frames: writing what was done", t,
+                                       total)
+                        break
+                    for node, stream, seq in zip(agents, streams, sequences, strict=True):
+                        if t < len(seq):
+                            frame = next(stream)
+                            result = node.step(frame)
+                            if node.agent_id in recorders:
+                                recorders[node.agent_id](frame, result, node.odometry)
+                    exchange()
+                    clock[0] = (t + 1) * period
+                    status = server.backend.status()
+                    bar.update(task, advance=1, info=f"groups {len(status['groups'])}  loops "
+                               f"{status['loops']['accepted']}/{status['loops']['found']}")
+        finally:  # a run that raises still leaves readable recordings
+            for recorder in recorders.values():
+                recorder.close()
         for node in agents:
             node.flush()
         exchange()
