@@ -34,12 +34,12 @@ import logging
 import time
 from collections.abc import Callable
 from contextlib import AbstractContextManager
-from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
+from cpslam.agent.frames import FrameLog, FrameResult
 from cpslam.agent.keyframes import KeyframeStore
 from cpslam.agent.mapper import Mapper, View
 from cpslam.agent.motion import MOTION_MODELS, motion_guesses
@@ -64,35 +64,6 @@ logger = logging.getLogger(__name__)
 __all__ = ["FrameResult", "Odometry"]
 
 FORMAT_VERSION = 1
-
-
-@dataclass
-class FrameResult:
-    """What happened to one frame. Times in seconds; map_steps is 0 when it did not map.
-
-    map_time_s is the whole mapping call (adding points, co-visibility, optimisation);
-    map_optimise_time_s only its `map_steps` optimisation steps, so a per-step time is
-    map_optimise_time_s / map_steps; with the concurrent schedule they sum the calls that
-    finished while this frame was processed (on the mapping thread). track_event is ""
-    (tracked and healthy, or recovery off), "recovered" or "lost" (see
-    `cpslam.agent.recovery`); track_time_s includes the recovery.
-    """
-
-    index: int
-    timestamp: float
-    T_world_cam: np.ndarray  # [4, 4] float64
-    track_time_s: float
-    track_iters: int
-    track_loss: float
-    map_time_s: float
-    map_steps: int
-    map_optimise_time_s: float
-    n_points: int
-    is_keyframe: bool
-    kf_id: int | None
-    track_event: str = ""
-    track_inlier_ratio: float = float("nan")
-    track_residual_m: float = float("nan")
 
 
 class Odometry:
@@ -165,10 +136,7 @@ class Odometry:
         # The latest keyframe's full-size images for tracking.reference_weight.
         self._reference: tuple[int, ReferenceImage] | None = None
         self._last_map_count: int | None = None
-        self._stamps: list[float] = []
-        self._indices: list[int] = []
-        self._poses: list[np.ndarray] = []
-        self._tracked: list[bool] = []  # False for the frames whose tracking was lost
+        self.frames = FrameLog()
 
     @classmethod
     def from_config(
@@ -205,7 +173,7 @@ class Odometry:
     def step(self, frame: RGBDFrame) -> FrameResult:
         """Process the next frame (processed resolution) and return what happened."""
         rgb, depth = self._check_frame(frame)
-        count = len(self._poses)
+        count = len(self.frames)
         generator = torch.Generator(device="cpu").manual_seed(
             self.seed * 1_000_003 + int(frame.index))
         depth_t = torch.from_numpy(depth).to(self.device)
@@ -244,10 +212,7 @@ class Odometry:
             self._set_reference(kf.kf_id)
         mapping = healthy and (self._last_map_count is None
                                or count - self._last_map_count >= self.map_every)
-        self._stamps.append(float(frame.timestamp))
-        self._indices.append(int(frame.index))
-        self._poses.append(np.asarray(T_world_cam, dtype=np.float64))
-        self._tracked.append(healthy)
+        self.frames.append(frame.timestamp, frame.index, T_world_cam, healthy)
         if mapping or kf_id is not None:
             t1 = time.perf_counter()
             job = self._job(current, T_world_cam, kf_id, mapping, count, generator)
@@ -269,7 +234,7 @@ class Odometry:
                      len(self.point_map))
         return FrameResult(
             index=int(frame.index), timestamp=float(frame.timestamp),
-            T_world_cam=self._poses[-1].copy(), track_time_s=track_time,
+            T_world_cam=self.frames.poses[-1].copy(), track_time_s=track_time,
             track_iters=track_iters, track_loss=track_loss, map_time_s=map_time,
             map_steps=map_steps, map_optimise_time_s=optimise_time,
             n_points=len(self.point_map), is_keyframe=kf_id is not None, kf_id=kf_id,
@@ -308,22 +273,17 @@ class Odometry:
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
         """Stamps [N] float64 and T_world_cam [N, 4, 4] of every frame so far."""
-        poses = np.stack(self._poses) if self._poses else np.zeros((0, 4, 4))
-        return np.asarray(self._stamps, dtype=np.float64), poses
+        return self.frames.trajectory()
 
     def set_frame_poses(self, T_world_cam: np.ndarray | list[np.ndarray]) -> None:
         """Replace every frame's pose [N, 4, 4] (a world or pose-graph correction from the
         server): the next frame is tracked from the last ones, so they must follow."""
-        poses = [np.array(T, dtype=np.float64) for T in T_world_cam]
-        if len(poses) != len(self._poses) or any(T.shape != (4, 4) for T in poses):
-            raise ValueError(f"set_frame_poses: expected {len(self._poses)} poses [4, 4], got "
-                             f"{[T.shape for T in poses]}")
-        self._poses = poses
+        self.frames.set_poses(T_world_cam)
 
     @property
     def n_frames(self) -> int:
         """Frames processed so far."""
-        return len(self._poses)
+        return len(self.frames)
 
     def mark_fused(self) -> None:
         """The map or the decoders changed under the odometry (another agent's points joined,
@@ -369,7 +329,7 @@ class Odometry:
             self.keyframes.get(kf_id).T_world_cam, (intr.fx, intr.fy, intr.cx, intr.cy)))
 
     def _guesses(self) -> dict[str, np.ndarray]:
-        return motion_guesses(self._poses, self._tracked)
+        return motion_guesses(self.frames.poses, self.frames.tracked)
 
     def _initial_pose(self) -> np.ndarray:
         guesses = self._guesses()
@@ -441,8 +401,8 @@ class Odometry:
         for outcome in outcomes:
             if len(outcome.point_ids) and outcome.anchor_kf in self.keyframes:
                 self.keyframes.add_point_ids(outcome.anchor_kf, outcome.point_ids)
-            if outcome.T_world_cam is not None and outcome.count < len(self._poses):
-                self._poses[outcome.count] = np.asarray(outcome.T_world_cam, np.float64)
+            if outcome.T_world_cam is not None and outcome.count < len(self.frames):
+                self.frames.poses[outcome.count] = np.asarray(outcome.T_world_cam, np.float64)
         return outcomes
 
     def _drain_worker(self) -> list[MapOutcome]:
@@ -453,13 +413,13 @@ class Odometry:
         """`mapping.iters_after_fusion` steps on the last frame (at its pose, which follows
         the server's corrections) and its co-visible keyframes; steps and seconds. The
         mapping thread is idle (drained) when this runs."""
-        if self._last_frame is None or not self._poses:
+        if self._last_frame is None or not len(self.frames):
             return 0, 0.0  # nothing to fit on (resumed): the next mapping call does it
         self.fused = False
         rgb_t, depth_t = self._last_frame.rgb_t, self._last_frame.depth_t
         work = self.maps.work
         result = self.mapper.optimise(work.point_map, work.decoders,
-                                      self._views(rgb_t, depth_t, self._poses[-1]),
+                                      self._views(rgb_t, depth_t, self.frames.poses[-1]),
                                       self.iters_after_fusion, self.n_pixels, generator)
         self.maps.republish()
         logger.debug("re-fit after a change from the server: %d steps, loss %.4f -> %.4f",
@@ -486,7 +446,6 @@ class Odometry:
         """Everything needed to render or resume (plain tensors, numbers, strings, lists and
         dicts: loadable with torch.load(weights_only=True)); waits for the mapping thread."""
         self.drain()
-        _, poses = self.trajectory()
         return {
             "format_version": FORMAT_VERSION,
             "agent_id": self.agent_id,
@@ -496,10 +455,7 @@ class Odometry:
             "decoders": {k: v.detach().cpu().clone() for k, v in
                          self.maps.work.decoders.state_dict().items()},
             "keyframes": self.keyframes.state_dict(),
-            "stamps": torch.tensor(self._stamps, dtype=torch.float64),
-            "frame_indices": torch.tensor(self._indices, dtype=torch.int64),
-            "poses": torch.from_numpy(poses.copy()),
-            "tracked": torch.tensor(self._tracked, dtype=torch.bool),
+            **self.frames.state_dict(),
             "n_frames": self.n_frames,
             "fused": self.fused,
             "last_keyframe_count": -1 if self._last_kf_count is None else self._last_kf_count,
@@ -522,21 +478,11 @@ class Odometry:
         self.maps.work.decoders.load_state_dict(state["decoders"])
         self.maps.republish()
         self.keyframes.load_state_dict(state["keyframes"], source="odometry state keyframes")
-        self._stamps = [float(s) for s in state["stamps"].tolist()]
-        self._indices = [int(i) for i in state["frame_indices"].tolist()]
-        self._poses = [p.cpu().numpy().astype(np.float64) for p in state["poses"]]
-        tracked = state.get("tracked")  # absent in states written before the recovery
-        self._tracked = [True] * len(self._poses) if tracked is None else \
-            [bool(b) for b in tracked.tolist()]
-        if len(self._tracked) != len(self._poses):
-            raise ValueError("odometry state: tracked and poses differ in length")
-        if not len(self._stamps) == len(self._indices) == len(self._poses) \
-                == int(state["n_frames"]):
-            raise ValueError("odometry state: stamps, frame_indices and poses differ in length")
+        self.frames.load_state_dict(state, int(state["n_frames"]))
         self.seed = int(state["seed"])
         self.agent_id = int(state["agent_id"])
         self.fused = bool(state["fused"])
-        n = len(self._poses)
+        n = len(self.frames)
         # States written before the counters existed made both on multiples of the period.
         last_kf = int(state.get("last_keyframe_count", (n - 1) // self.kf_every * self.kf_every))
         last_map = int(state.get("last_mapping_count",
