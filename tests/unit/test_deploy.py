@@ -378,6 +378,36 @@ def test_compose_secure_variant_uses_mutual_tls(compose_bin: Path,
                 "service_completed_successfully", name
 
 
+@pytest.mark.parametrize("files", [[COMPOSE], [COMPOSE, COMPOSE_SECURE]],
+                         ids=["demo", "demo+secure"])
+def test_compose_services_are_hardened(compose_bin: Path, files: list[Path],
+                                       daemons_available: None) -> None:
+    services = _resolved(compose_bin, files)["services"]
+    for name, svc in services.items():
+        assert svc.get("read_only") is True, f"{name}: root filesystem must be read-only"
+        assert svc.get("cap_drop") == ["ALL"], name
+        assert "no-new-privileges:true" in svc.get("security_opt", []), name
+        assert int(svc.get("mem_limit", 0)) > 0 and int(svc.get("pids_limit", 0)) > 0, name
+        assert "/tmp" in svc.get("tmpfs", []), f"{name}: caches need a writable /tmp"
+        assert svc["environment"]["MPLCONFIGDIR"].startswith("/tmp/"), name
+        # Everything a service writes lies on a volume (or /tmp): its outputs survive.
+        for argv in _invocations(svc["command"]):
+            for flag in ("--out", "--install-dir"):
+                if flag in argv:
+                    target = _flag(argv, flag)
+                    mounts = [v["target"] for v in svc.get("volumes", [])]
+                    assert any(target.startswith(m) for m in mounts), (name, target)
+    check = services["server"]["healthcheck"]
+    argv = check["test"][1:]
+    assert check["test"][0] == "CMD" and argv[:2] == ["cpslam", "status"]
+    _check_flags(argv, f"{files[-1].name} server healthcheck")
+    listen = _flag(services["server"]["command"], "--listen")
+    assert _flag(argv, "--connect").split("/")[0] == listen.split("/")[0]
+    assert _flag(argv, "--connect").rsplit(":", 1)[1] == listen.rsplit(":", 1)[1]
+    if COMPOSE_SECURE in files:  # only the operator may ask for the status
+        assert _flag(argv, "--config").endswith("/operator.yaml")
+
+
 def test_compose_agents_match_the_data_and_the_server(compose_bin: Path) -> None:
     services = _resolved(compose_bin, [COMPOSE])["services"]
     synth = _invocations(services["data"]["command"])[0]
