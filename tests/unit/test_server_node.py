@@ -50,8 +50,9 @@ def _setup(tmp_path: Path, persist_every_s: float):
     cfg = load_config("tiny")
     network = InMemoryNetwork()
     server_bus, agent_bus = InMemoryBus(network), InMemoryBus(network)
+    # The state is written in the poll loop here, so each poll's acks are out when it returns.
     node = ServerNode(cfg, server_bus, tmp_path, state_path=tmp_path / "state.pt",
-                      persist_every_s=persist_every_s).start()
+                      persist_every_s=persist_every_s, persist_background=False).start()
     acks = agent_bus.subscribe(keys.server_agent_ack(SESSION, "a"), queue_size=64)
     return node, agent_bus, acks
 
