@@ -182,3 +182,60 @@ def _torch_load(data: bytes):
     import torch
 
     return torch.load(io.BytesIO(data), weights_only=True)
+
+
+def test_run_outputs_are_renamed_into_place_with_metrics_json_last(
+    tmp_path: Path, monkeypatch
+) -> None:
+    import os
+
+    import numpy as np
+
+    from cpslam.protocol import SubmapDelta
+
+    node, agent_bus, _ = _node(tmp_path, background=False)
+    _send(agent_bus, 0, 0)
+    n = 50
+    rng = np.random.default_rng(0)
+    points = SubmapDelta(
+        agent_id="a",
+        seq=1,
+        point_ids=np.arange(n),
+        anchor_kf_ids=np.zeros(n, np.int32),
+        xyz_local=rng.uniform(-1, 1, (n, 3)).astype(np.float32),
+        features=rng.standard_normal((n, node.cfg.field.feature_dim)).astype(np.float16),
+        colors=rng.integers(0, 256, (n, 3), dtype=np.uint8),
+        removed_ids=np.zeros(0, np.int64),
+    )
+    agent_bus.publish(keys.agent_submap(SESSION, "a"), protocol.encode(points))
+    _settle(agent_bus)
+    node.poll()
+    renamed: list[Path] = []
+    real_replace = os.replace
+
+    def replace(src, dst) -> None:
+        renamed.append(Path(dst))
+        real_replace(src, dst)
+
+    monkeypatch.setattr(os, "replace", replace)
+    node.finalise()
+    node.close()
+    outputs = {p for p in tmp_path.rglob("*") if p.is_file() and not p.name.startswith("state.")}
+    assert {p.name for p in outputs} >= {"metrics.json", "fused_map.ply", "fused_map.pt"}
+    assert any(p.suffix == ".tum" for p in outputs)
+    assert outputs <= set(renamed), "every output was renamed into place (atomic)"
+    assert renamed[-1] == tmp_path / "metrics.json", "the completion mark comes last"
+    assert not list(tmp_path.rglob("*.tmp")), "no temporary file left"
+
+
+def test_finalise_without_the_mark_leaves_metrics_json_to_the_caller(tmp_path: Path) -> None:
+    from cpslam.server.export import write_metrics
+
+    node, agent_bus, _ = _node(tmp_path, background=False)
+    _send(agent_bus, 0, 0)
+    node.poll()
+    final = node.finalise(mark_complete=False)
+    node.close()
+    assert not (tmp_path / "metrics.json").exists()
+    write_metrics(final, tmp_path)
+    assert (tmp_path / "metrics.json").is_file()
