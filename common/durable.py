@@ -198,7 +198,9 @@ def load_generation(path: str | Path, decode: Callable[[bytes], T]) -> tuple[T, 
     """The newest good generation of `path`, decoded, and the file it came from.
 
     A newest file that is missing, fails its integrity check or fails `decode` is logged
-    (naming the file and the reason) and the previous generation is tried.
+    (naming the file and the reason) and the previous generation is tried. When that one
+    loads, the bad newest file is moved to ``<name>.corrupt`` (kept for a post-mortem): the
+    next `save_generation` must not rotate it over the good previous generation.
 
     Raises:
         FileNotFoundError: neither generation exists.
@@ -221,7 +223,17 @@ def load_generation(path: str | Path, decode: Callable[[bytes], T]) -> tuple[T, 
             reasons.append(reason)
             continue
         if reasons:
-            logger.warning("loaded the previous generation %s (%s)", candidate, "; ".join(reasons))
+            newest = generation_paths(path)[0]
+            if newest.is_file():
+                os.replace(newest, newest.with_name(newest.name + ".corrupt"))
+                fsync_dir(newest.parent)
+            logger.warning(
+                "loaded the previous generation %s (%s); the bad newest file, if any, is "
+                "now %s.corrupt",
+                candidate,
+                "; ".join(reasons),
+                newest.name,
+            )
         return value, candidate
     if all(r.endswith(": missing") for r in reasons):
         raise FileNotFoundError(f"{path}: no generation file ({'; '.join(reasons)})")

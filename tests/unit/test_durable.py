@@ -92,6 +92,10 @@ def test_a_torn_newest_generation_falls_back_to_the_previous(tmp_path: Path, cap
     assert payload == b"A" * 1000
     assert used == tmp_path / "state.pt.prev"
     assert str(path) in caplog.text and "trailer" in caplog.text
+    # The torn file is set aside, so the next generation does not rotate it over the good one.
+    assert (tmp_path / "state.pt.corrupt").is_file() and not path.exists()
+    durable.save_generation(path, b"C" * 10)
+    assert durable.unseal((tmp_path / "state.pt.prev").read_bytes()) == b"A" * 1000
 
 
 def test_a_corrupt_payload_is_detected_by_the_trailer(tmp_path: Path) -> None:
