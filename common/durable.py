@@ -36,6 +36,7 @@ __all__ = [
     "seal",
     "torch_bytes",
     "torch_save_atomic",
+    "trailer",
     "unseal",
     "write_bytes_atomic",
     "write_text_atomic",
@@ -123,7 +124,12 @@ def torch_save_atomic(obj: Any, path: str | Path) -> Path:
 
 def seal(payload: bytes) -> bytes:
     """`payload` followed by its trailer (magic, length, SHA-256)."""
-    return payload + _TRAILER.pack(MAGIC, len(payload), hashlib.sha256(payload).digest())
+    return payload + trailer(payload)
+
+
+def trailer(payload: bytes) -> bytes:
+    """The integrity trailer of `payload`."""
+    return _TRAILER.pack(MAGIC, len(payload), hashlib.sha256(payload).digest())
 
 
 def unseal(blob: bytes, name: str | Path = "<bytes>") -> bytes:
@@ -180,7 +186,8 @@ def save_generation(path: str | Path, payload: bytes) -> Path:
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
-            f.write(seal(payload))
+            f.write(payload)  # and the trailer apart: no second copy of a large state
+            f.write(trailer(payload))
             f.flush()
             os.fsync(f.fileno())
         if path.is_file():

@@ -85,7 +85,9 @@ class ServerNode:
         self.writer = None if self.state_path is None else StateWriter(
             self.state_path, background=persist_background, retry_s=max(persist_every_s, 0.1),
             log_every_s=persist_log_every_s)
-        self._held_acks: list[Outgoing] = []  # not yet in a snapshot
+        # Not yet in a snapshot: acks are cumulative (every seq <= this one), so the newest
+        # per agent stands for the others and a long full disk holds one per agent.
+        self._held_acks: dict[str, Outgoing] = {}
         self._covered: list[tuple[int, list[Outgoing]]] = []  # (generation, its acks)
         self._last_persist = float("-inf")
         self.restored = False
@@ -186,7 +188,11 @@ class ServerNode:
             for _, _, msg, nbytes in batch:
                 out = self.backend.handle(msg, nbytes)
                 if self.state_path is not None:
-                    self._held_acks += [o for o in out if isinstance(o.message, Ack)]
+                    for o in out:
+                        held = self._held_acks.get(o.target)
+                        if isinstance(o.message, Ack) and (
+                                held is None or o.message.seq >= held.message.seq):
+                            self._held_acks[o.target] = o
                     out = [o for o in out if not isinstance(o.message, Ack)]
                 self.publish(out)
             try:
@@ -225,8 +231,8 @@ class ServerNode:
 
     def _submit(self) -> int:
         gen = self.writer.submit(detach(self.backend.state_dict()))
-        self._covered.append((gen, self._held_acks))
-        self._held_acks, self._last_persist = [], time.monotonic()
+        self._covered.append((gen, list(self._held_acks.values())))
+        self._held_acks, self._last_persist = {}, time.monotonic()
         return gen
 
     def _release(self) -> None:
