@@ -354,6 +354,9 @@ class ServerNode:
             if agent in summary.get("agents", {}):
                 summary["agents"][agent]["alive"] = alive
         summary["bus_dropped"] = dict(self.dropped)
+        if self.writer is not None:  # a full disk shows here, not only in the log
+            summary["persist"] = {"generation": self.writer.durable_gen,
+                                  "failures": self.writer.failures}
         summary["stale_s"] = round(time.monotonic() - self._status_at, 3)
         return protocol.encode(Status(stamp=time.time(), summary=summary))
 

@@ -104,6 +104,8 @@ def test_a_full_disk_holds_acks_keeps_polling_logs_once_and_recovers(
         node.poll()
         failures = [r for r in caplog.records if "cannot write the server state" in r.message]
         assert len(failures) == 2, "the next interval logs again"
+        status = protocol.decode(node._serve_status("", None)).summary
+        assert status["persist"]["generation"] == 0 and status["persist"]["failures"] >= 4
     assert not (tmp_path / "state.pt").exists()
 
     node.writer.write = real_write  # space again
@@ -111,6 +113,7 @@ def test_a_full_disk_holds_acks_keeps_polling_logs_once_and_recovers(
     node.poll()  # the pending snapshot (seq 0) is written on its retry
     node.poll()  # then a snapshot of everything since
     assert _acks(acks, agent_bus) == [0, 3]  # an ack covers every seq up to its own
+    assert protocol.decode(node._serve_status("", None)).summary["persist"]["failures"] == 0
     state, _ = durable.load_generation(tmp_path / "state.pt", _torch_load)
     assert len(state["registry"]["agents"][0]["keyframes"]) == 4
     node.close()
