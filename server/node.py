@@ -39,7 +39,7 @@ from cpslam.protocol import (
 )
 from cpslam.server.backend import Backend, Outgoing
 from cpslam.server.export import export_run
-from cpslam.server.persist import StateWriter, detach
+from cpslam.server.persist import AckGate, StateWriter, detach
 from cpslam.server.traffic import DecoderFanout, KeyCounter, traffic_per_agent, traffic_per_group
 
 if TYPE_CHECKING:
@@ -82,14 +82,12 @@ class ServerNode:
         self.cfg, self.bus, self.run_dir = cfg, bus, Path(run_dir)
         self.state_path = Path(state_path) if state_path is not None else None
         self.persist_every_s = float(persist_every_s)
-        self.writer = None if self.state_path is None else StateWriter(
-            self.state_path, background=persist_background, retry_s=max(persist_every_s, 0.1),
-            log_every_s=persist_log_every_s)
-        # Not yet in a snapshot: acks are cumulative (every seq <= this one), so the newest
-        # per agent stands for the others and a long full disk holds one per agent.
-        self._held_acks: dict[str, Outgoing] = {}
-        self._covered: list[tuple[int, list[Outgoing]]] = []  # (generation, its acks)
-        self._last_persist = float("-inf")
+        self.writer = self.acks = None
+        if self.state_path is not None:
+            self.writer = StateWriter(self.state_path, background=persist_background,
+                                      retry_s=max(persist_every_s, 0.1),
+                                      log_every_s=persist_log_every_s)
+            self.acks = AckGate(self.writer, persist_every_s, self.publish)
         self.restored = False
         self._t_start = time.monotonic()
         self._status: dict = {}
@@ -150,7 +148,7 @@ class ServerNode:
                 # Idle: block on the agents' queue (not a sleep) so a message is handled as
                 # soon as it arrives; control and liveliness are seen within poll_s.
                 self._subs[0].wait(timeout=poll_s)
-        if self._held_acks or self._covered:
+        if self.acks is not None and self.acks.pending:
             self.persist()
         if self.control is not None and self.control.action == "shutdown":
             logger.info("shutdown requested: %s", self.control.reason)
@@ -187,12 +185,10 @@ class ServerNode:
         with self._lock:
             for _, _, msg, nbytes in batch:
                 out = self.backend.handle(msg, nbytes)
-                if self.state_path is not None:
+                if self.acks is not None:
                     for o in out:
-                        held = self._held_acks.get(o.target)
-                        if isinstance(o.message, Ack) and (
-                                held is None or o.message.seq >= held.message.seq):
-                            self._held_acks[o.target] = o
+                        if isinstance(o.message, Ack):
+                            self.acks.hold(o)
                     out = [o for o in out if not isinstance(o.message, Ack)]
                 self.publish(out)
             try:
@@ -200,7 +196,8 @@ class ServerNode:
             except Exception:  # noqa: BLE001 - the server outlives a failing step
                 self.step_errors += 1
                 logger.exception("back-end step failed (%d so far)", self.step_errors)
-            self._persist_tick()
+            if self.acks is not None:
+                self.acks.tick(self._state_snapshot)
             self._snapshot()
         return len(batch)
 
@@ -208,37 +205,19 @@ class ServerNode:
         """Snapshot the accepted state now, wait (up to `timeout_s`) for its write and release
         the acks it covers. Returns whether it is durable (False: a failed write; the acks
         stay held and the writer retries)."""
-        if self.writer is None:
+        if self.acks is None:
             return True
         with self._lock:
-            gen = self._submit()
+            gen = self.acks.submit(self._state_snapshot())
         ok = self.writer.wait(gen, timeout_s)
         with self._lock:
-            self._release()
+            self.acks.release()
         return ok
 
-    def _persist_tick(self) -> None:
-        # Release what the writer made durable; snapshot again when the interval is up and
-        # the writer is free (a slow or failing disk holds acks, not the loop).
-        if self.writer is None:
-            return
-        self.writer.pump()
-        self._release()
-        if (self._held_acks and not self.writer.busy
-                and time.monotonic() - self._last_persist >= self.persist_every_s):
-            self._submit()
-            self._release()
-
-    def _submit(self) -> int:
-        gen = self.writer.submit(detach(self.backend.state_dict()))
-        self._covered.append((gen, list(self._held_acks.values())))
-        self._held_acks, self._last_persist = {}, time.monotonic()
-        return gen
-
-    def _release(self) -> None:
-        durable_gen = self.writer.durable_gen
-        while self._covered and self._covered[0][0] <= durable_gen:
-            self.publish(self._covered.pop(0)[1])
+    def _state_snapshot(self) -> dict:
+        # The arrays in state_dict are copies; detach copies the containers, so the loop
+        # may go on changing the back end while the writer thread pickles this.
+        return detach(self.backend.state_dict())
 
     def publish(self, out: list[Outgoing]) -> None:
         """Encode and put each outgoing message on its key (too large: logged, dropped)."""

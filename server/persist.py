@@ -11,6 +11,8 @@ A write that fails (a full disk, ENOSPC; an I/O error, EIO; anything else) leave
 running: the snapshot stays pending and is retried every `retry_s`, the acks it covers stay
 held, and the failure is logged once per `log_every_s` (and once when writes succeed again).
 
+`AckGate` holds the node's acks per generation and releases them once it is durable.
+
 ``background=False`` writes in the caller's thread (`submit` writes at once, `pump` retries
 when due) so tests drive it step by step with an injected clock.
 """
@@ -26,7 +28,7 @@ from typing import Any
 
 from cpslam.common import durable
 
-__all__ = ["StateWriter", "detach"]
+__all__ = ["AckGate", "StateWriter", "detach"]
 
 logger = logging.getLogger(__name__)
 
@@ -199,3 +201,65 @@ class StateWriter:
                 self.failures,
                 self.log_every_s,
             )
+
+
+class AckGate:
+    """Acks held until the state that contains their messages is durable.
+
+    `hold` keeps the newest ack per agent (acks are cumulative: every seq up to this one), so
+    a long full disk holds one per agent. `tick` (each poll) publishes the acks whose snapshot
+    is on disk and, when `every_s` has passed and the writer is free, hands it a new snapshot
+    covering the held ones.
+
+    Args:
+        writer: the state writer.
+        every_s: at most one snapshot per this many seconds.
+        publish: sends released acks.
+        clock: monotonic seconds (injectable for tests).
+    """
+
+    def __init__(
+        self,
+        writer: StateWriter,
+        every_s: float,
+        publish: Callable[[list[Any]], None],
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.writer, self.every_s, self.publish, self.clock = writer, float(every_s), publish, clock
+        self.held: dict[str, Any] = {}
+        """Agent -> its newest ack not yet in a snapshot."""
+        self.covered: list[tuple[int, list[Any]]] = []
+        """(generation, the acks it covers), oldest first."""
+        self.last_snapshot = float("-inf")
+
+    @property
+    def pending(self) -> bool:
+        """Some ack is not yet sent."""
+        return bool(self.held or self.covered)
+
+    def hold(self, ack: Any) -> None:
+        """Keep `ack` (an outgoing message with ``target`` and ``message.seq``)."""
+        held = self.held.get(ack.target)
+        if held is None or ack.message.seq >= held.message.seq:
+            self.held[ack.target] = ack
+
+    def tick(self, snapshot: Callable[[], Any]) -> None:
+        """Release what is durable; snapshot again when due and the writer is free."""
+        self.writer.pump()
+        self.release()
+        if self.held and not self.writer.busy and self.clock() - self.last_snapshot >= self.every_s:
+            self.submit(snapshot())
+            self.release()
+
+    def submit(self, state: Any) -> int:
+        """Hand `state` to the writer as covering every held ack; returns its generation."""
+        gen = self.writer.submit(state)
+        self.covered.append((gen, list(self.held.values())))
+        self.held, self.last_snapshot = {}, self.clock()
+        return gen
+
+    def release(self) -> None:
+        """Publish the acks of every generation on disk."""
+        durable_gen = self.writer.durable_gen
+        while self.covered and self.covered[0][0] <= durable_gen:
+            self.publish(self.covered.pop(0)[1])

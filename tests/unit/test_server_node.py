@@ -59,7 +59,7 @@ def _setup(tmp_path: Path, persist_every_s: float):
 
 def test_acks_wait_for_the_state_on_disk_and_a_restart_restores_it(tmp_path: Path) -> None:
     node, agent_bus, acks = _setup(tmp_path, persist_every_s=3600.0)
-    node._last_persist = time.monotonic()  # the next write is an hour away
+    node.acks.last_snapshot = time.monotonic()  # the next write is an hour away
     agent_bus.publish(keys.agent_keyframe(SESSION, "a"), protocol.encode(_keyframe("a", 0, 0)))
     _settle(agent_bus)
     node.poll()

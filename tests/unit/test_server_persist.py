@@ -94,7 +94,7 @@ def test_a_full_disk_holds_acks_keeps_polling_logs_once_and_recovers(
             _send(agent_bus, i, i)
             assert node.poll() == 1
         assert _acks(acks, agent_bus) == []
-        assert len(node._held_acks) == 1, "held acks are cumulative: one per agent"
+        assert len(node.acks.held) == 1, "held acks are cumulative: one per agent"
         assert len(attempts) >= 3, "the writer retries"
         assert node.backend.status()["agents"]["a"]["keyframes"] == 4
         failures = [r for r in caplog.records if "cannot write the server state" in r.message]
