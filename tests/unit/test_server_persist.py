@@ -243,3 +243,34 @@ def test_finalise_without_the_mark_leaves_metrics_json_to_the_caller(tmp_path: P
     assert not (tmp_path / "metrics.json").exists()
     write_metrics(final, tmp_path)
     assert (tmp_path / "metrics.json").is_file()
+
+
+def test_the_ack_gate_keeps_the_newest_ack_per_agent_and_snapshots_when_due(
+    tmp_path: Path,
+) -> None:
+    from cpslam.protocol import Ack
+    from cpslam.server.backend import Outgoing
+    from cpslam.server.persist import AckGate
+
+    clock = FakeClock()
+    writer = StateWriter(tmp_path / "s.pt", background=False, clock=clock)
+    sent: list[tuple[str, int]] = []
+    gate = AckGate(
+        writer, 5.0, lambda out: sent.extend((o.target, o.message.seq) for o in out), clock=clock
+    )
+
+    def ack(agent: str, seq: int) -> Outgoing:
+        return Outgoing(scope="agent", target=agent, message=Ack(agent_id=agent, seq=seq))
+
+    for agent, seq in (("a", 3), ("a", 1), ("b", 0), ("a", 4)):
+        gate.hold(ack(agent, seq))
+    assert {a: o.message.seq for a, o in gate.held.items()} == {"a": 4, "b": 0}
+    gate.tick(lambda: {"n": 1})
+    assert sorted(sent) == [("a", 4), ("b", 0)] and not gate.pending
+    gate.hold(ack("a", 5))
+    clock.advance(4.0)
+    gate.tick(lambda: {"n": 2})
+    assert len(sent) == 2 and gate.pending, "no snapshot before every_s has passed"
+    clock.advance(1.0)
+    gate.tick(lambda: {"n": 3})
+    assert sent[-1] == ("a", 5) and writer.durable_gen == 2
