@@ -152,8 +152,8 @@ def write_agent_outputs(
     seq: RGBDSequence | None = None,
 ) -> None:
     """trajectory.tum, map.ply, state.pt and metrics.json of one agent; metrics.json names
-    `seq` (where a report finds the ground truth)."""
-    import torch
+    `seq` (where a report finds the ground truth), each written atomically."""
+    from cpslam.common.durable import torch_save_atomic
 
     odometry.drain()
     stamps, poses = odometry.trajectory()
@@ -163,7 +163,7 @@ def write_agent_outputs(
     if len(pm):
         write_ply(agent_dir / "map.ply", pm.xyz_world().detach().cpu().numpy(),
                   pm.color.cpu().numpy())
-    torch.save(odometry.state_dict(), agent_dir / STATE_FILE)
+    torch_save_atomic(odometry.state_dict(), agent_dir / STATE_FILE)
     metrics = {"schema_version": SCHEMA_VERSION,
                **frame_metrics(odometry, results, wall_time_s, interrupted, device)}
     if seq is not None:

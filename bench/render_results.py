@@ -206,8 +206,22 @@ def _rerun_overhead(report: dict) -> str:
             f"{100 * r['recorder_share']:.2f} % of a frame.\n")
 
 
+def _persist(report: dict) -> str:
+    rows = [("keyframes", "state MB", "poll max / median s: no state", "state in the loop",
+             "writer thread", "write s (thread)")]
+    by = {(r["mode"], r["keyframes"]): r for r in report["rows"]}
+    for n in sorted({r["keyframes"] for r in report["rows"]}):
+        off, loop, thread = by[("off", n)], by[("loop", n)], by[("thread", n)]
+        rows.append((n, loop["state_mb"],
+                     *(f"{r['poll_max_s']} / {r['poll_median_s']}" for r in (off, loop, thread)),
+                     thread["write_s"]))
+    return (f"Preset `{report['preset']}`, {report['points_per_kf']} map points per keyframe, "
+            f"{report['polls']} polls per size, each with one new keyframe and a snapshot; "
+            "one torch thread.\n\n" + _table(rows) + "\n")
+
+
 RENDERERS = {"odometry": _odometry, "loop_edges": _loop_edges, "collab": _collab,
-             "rerun_overhead": _rerun_overhead}
+             "rerun_overhead": _rerun_overhead, "persist": _persist}
 
 
 if __name__ == "__main__":

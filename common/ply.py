@@ -7,6 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
+from cpslam.common.durable import atomic_open
+
 
 def write_ply(
     path: str | Path,
@@ -47,7 +49,7 @@ def write_ply(
     text = "\n".join(
         ["ply", "format binary_little_endian 1.0", f"element vertex {n}", *header, "end_header"]
     )
-    with open(path, "wb") as f:
+    with atomic_open(path, "wb") as f:
         f.write(text.encode("ascii") + b"\n")
         f.write(rows.tobytes())
     return path

@@ -39,11 +39,11 @@ def create_run_dir(out: str | Path, name: str | None = None) -> Path:
 
 
 def write_json(path: str | Path, data: Any) -> Path:
-    """Write JSON with numpy scalars and arrays converted to plain numbers and lists."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(data, indent=2, default=_to_builtin) + "\n")
-    return path
+    """Write JSON with numpy scalars and arrays converted to plain numbers and lists,
+    atomically (a crash leaves the old file or the new one, never half of it)."""
+    from cpslam.common.durable import write_text_atomic
+
+    return write_text_atomic(path, json.dumps(data, indent=2, default=_to_builtin) + "\n")
 
 
 def peak_rss_mb() -> float:

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cpslam.common.durable import write_text_atomic
 from cpslam.common.geometry import is_rigid, pose_from_tq, pose_to_tq
 
 __all__ = ["TUM_HEADER", "Trajectory", "TrajectoryFormatError", "read_tum", "write_tum"]
@@ -76,7 +77,7 @@ def write_tum(path: str | Path, stamps: np.ndarray, T_world_cam: np.ndarray) -> 
     for stamp, ti, qi in zip(stamps, t, q, strict=True):
         numbers = " ".join(f"{x:.9f}" for x in (*ti, *qi))
         lines.append(f"{stamp:.6f} {numbers}")
-    path.write_text("\n".join(lines) + "\n")
+    write_text_atomic(path, "\n".join(lines) + "\n")
     logger.debug("wrote %d poses to %s", len(stamps), path)
 
 

@@ -23,7 +23,6 @@ kills them (`cpslam.supervisor`).
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import shutil
@@ -354,7 +353,6 @@ def _interrupt(_signum: int, _frame: object) -> None:
 
 
 def _write_marker(out: Path, info: dict) -> None:
-    from cpslam.common.rundir import SCHEMA_VERSION
+    from cpslam.common.rundir import SCHEMA_VERSION, write_json
 
-    (out / MARKER).write_text(json.dumps({"schema_version": SCHEMA_VERSION, **info}, indent=2)
-                              + "\n")
+    write_json(out / MARKER, {"schema_version": SCHEMA_VERSION, **info})  # atomically

@@ -189,7 +189,8 @@ def run_collab(cfg: CpslamConfig, sequences: list[RGBDSequence], run_dir: Path,
                                len(node.link.outbox))
         for node in agents:
             node.write_outputs({"interrupted": True} if interrupted else None)
-        final = server.finalise()
+        # metrics.json marks a complete run: written last, after this driver's own outputs.
+        final = server.finalise(mark_complete=False)
         odometry = _odometry_trajectories(server)
         for aid, (stamps, poses) in odometry.items():
             write_tum(run_dir / "trajectories" / f"agent_{aid}_odometry.tum", stamps, poses)
@@ -209,6 +210,9 @@ def run_collab(cfg: CpslamConfig, sequences: list[RGBDSequence], run_dir: Path,
 
         write_json(run_dir / "evaluation.json", {"schema_version": SCHEMA_VERSION,
                                                  **out.evaluation})
+    from cpslam.server.export import write_metrics
+
+    write_metrics(final, run_dir)
     return out
 
 

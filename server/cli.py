@@ -1,9 +1,11 @@
 """`cpslam-server`: the collaboration back end as a daemon on a Zenoh endpoint.
 
 The server hosts the Zenoh endpoint itself (no separate router), tracks agents by liveliness,
-runs the back end and answers status queries. Everything it accepts is persisted under the
-run folder before it is acknowledged (``server_state.pt``), so a server restarted with the
-same ``--out`` goes on where it stopped and agents resend only what was never acknowledged.
+runs the back end and answers status queries. Everything it accepts is persisted (fsynced,
+by a writer thread) under the run folder before it is acknowledged (``server_state.pt``, the
+previous generation in ``server_state.pt.prev``), so a server restarted with the same
+``--out`` goes on where it stopped and agents resend only what was never acknowledged; a full
+disk holds the acks and is retried, it does not stop the server.
 SIGINT, SIGTERM or a finalise request (`cpslam finalise`) run the final pose graph and
 refinement, write the outputs and exit 0; a second signal exits at once (code 130, without
 finalising), except the same signal again within `REPEAT_WINDOW_S` of the first: wrappers
@@ -63,6 +65,11 @@ def server(
         float, typer.Option("--persist-every", min=0.0,
                             help="Seconds between state writes (acks wait for the write).")
     ] = 1.0,
+    persist_log_every: Annotated[
+        float, typer.Option("--persist-log-every", min=0.0,
+                            help="While state writes fail (full disk), one error line per this "
+                            "many seconds; acks stay held and the write is retried.")
+    ] = 60.0,
     report: Annotated[
         bool, typer.Option("--report/--no-report",
                            help="After finalising, run cpslam report on the run folder when "
@@ -124,7 +131,8 @@ def server(
         try:
             # A verification budget keeps acks and updates flowing while loops queue up.
             node = ServerNode(cfg, bus, run_dir, state_path=run_dir / STATE_FILE,
-                              persist_every_s=persist_every, verify_budget_s=2.0).start()
+                              persist_every_s=persist_every,
+                              persist_log_every_s=persist_log_every, verify_budget_s=2.0).start()
         except RuntimeError as err:
             fail(str(err), ExitCode.ERROR)
         logger.info("server listening on %s (session %s, preset %s) -> %s",

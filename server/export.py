@@ -10,6 +10,10 @@ Layout (under ``run_dir``):
 - ``decoders_<group>.pt``: final decoder weights of each group that has some;
 - ``pose_graph.g2o``: the final pose graph;
 - ``metrics.json``: groups, loops, merges, rounds, pose-graph errors, timings, bytes.
+
+Every file is written atomically (`cpslam.common.durable`) and ``metrics.json`` last: its
+presence marks a complete run (a driver that adds outputs of its own writes it itself with
+`write_metrics`, after them).
 """
 
 from __future__ import annotations
@@ -19,18 +23,21 @@ from pathlib import Path
 
 import torch
 
+from cpslam.common.durable import torch_save_atomic
 from cpslam.common.ply import write_ply
 from cpslam.common.rundir import SCHEMA_VERSION, write_json
 from cpslam.common.trajectory import write_tum
 from cpslam.server.result import FinalResult
 
-__all__ = ["export_run"]
+__all__ = ["export_run", "write_metrics"]
 
 logger = logging.getLogger(__name__)
 
 
-def export_run(result: FinalResult, run_dir: str | Path) -> dict[str, Path]:
-    """Write every output of `result` under `run_dir`; returns name -> path written."""
+def export_run(result: FinalResult, run_dir: str | Path, mark_complete: bool = True
+               ) -> dict[str, Path]:
+    """Write every output of `result` under `run_dir`, ``metrics.json`` last (not at all
+    when not `mark_complete`); returns name -> path written."""
     run = Path(run_dir)
     traj_dir = run / "trajectories"
     traj_dir.mkdir(parents=True, exist_ok=True)
@@ -52,12 +59,18 @@ def export_run(result: FinalResult, run_dir: str | Path) -> dict[str, Path]:
             written[name + ".pt"] = run / f"{name}.pt"
     for gid, state in result.decoders.items():
         path = run / f"decoders_{gid}.pt"
-        torch.save({k: torch.as_tensor(v) for k, v in state.items()}, path)
+        torch_save_atomic({k: torch.as_tensor(v) for k, v in state.items()}, path)
         written[path.name] = path
     if result.pose_graph is not None:
         result.pose_graph.export_g2o(run / "pose_graph.g2o")
         written["pose_graph.g2o"] = run / "pose_graph.g2o"
-    written["metrics.json"] = write_json(run / "metrics.json",
-                                         {"schema_version": SCHEMA_VERSION, **result.metrics})
+    if mark_complete:
+        written["metrics.json"] = write_metrics(result, run)
     logger.info("exported %d files to %s", len(written), run)
     return written
+
+
+def write_metrics(result: FinalResult, run_dir: str | Path) -> Path:
+    """Write ``metrics.json``, the run's completion mark (atomically)."""
+    return write_json(Path(run_dir) / "metrics.json",
+                      {"schema_version": SCHEMA_VERSION, **result.metrics})

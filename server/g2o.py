@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cpslam.common.durable import write_text_atomic
 from cpslam.common.geometry import pose_to_tq
 
 __all__ = ["write_g2o"]
@@ -58,7 +59,7 @@ def write_g2o(
         values = " ".join(_num(v) for v in np.asarray(info, dtype=np.float64)[upper])
         lines.append(f"EDGE_SE3:QUAT {a} {b} {_tq(T_a_b)} {values}")
     lines += [f"FIX {i}" for i in fixed]
-    Path(path).write_text("\n".join(lines) + "\n")
+    write_text_atomic(path, "\n".join(lines) + "\n")
 
 
 def _tq(T: np.ndarray) -> str:

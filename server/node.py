@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import copy
 import logging
-import os
 import threading
 import time
 from collections import Counter
@@ -24,6 +23,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from cpslam import protocol
+from cpslam.common import durable
 from cpslam.common.rundir import peak_rss_mb
 from cpslam.protocol import (
     Ack,
@@ -39,6 +39,7 @@ from cpslam.protocol import (
 )
 from cpslam.server.backend import Backend, Outgoing
 from cpslam.server.export import export_run
+from cpslam.server.persist import AckGate, StateWriter, detach
 from cpslam.server.traffic import DecoderFanout, KeyCounter, traffic_per_agent, traffic_per_group
 
 if TYPE_CHECKING:
@@ -61,20 +62,32 @@ class ServerNode:
         image_timeout_s: how long a keyframe image query may take.
         state_path: where the accepted state is persisted (None: nothing is persisted). When
             set, acknowledgements are held back until the state that contains the acknowledged
-            messages is on disk, so an agent never drops a message the server could lose; a
-            state already there is loaded by `start` (a restarted server goes on from it).
-        persist_every_s: at most one state write per this many seconds (acks wait that long).
+            messages is durable (fsynced, see `StateWriter`), so an agent never drops a
+            message the server could lose; a state already there is loaded by `start` (a
+            restarted server goes on from it, or from the previous generation when the newest
+            is torn).
+        persist_every_s: at most one state snapshot per this many seconds (acks wait that
+            long); it is also the retry interval while writes fail.
+        persist_background: write the state on a writer thread, off the poll loop (False: in
+            the poll loop, for tests that step it).
+        persist_log_every_s: while state writes fail (full disk), one log line per this many
+            seconds.
         backend_kwargs: passed to `Backend.from_config` (e.g. ``now`` or ``refine_pose``).
     """
 
     def __init__(self, cfg: CpslamConfig, bus: Bus, run_dir: str | Path,
                  image_timeout_s: float = 10.0, state_path: str | Path | None = None,
-                 persist_every_s: float = 1.0, **backend_kwargs: Any) -> None:
+                 persist_every_s: float = 1.0, persist_background: bool = True,
+                 persist_log_every_s: float = 60.0, **backend_kwargs: Any) -> None:
         self.cfg, self.bus, self.run_dir = cfg, bus, Path(run_dir)
         self.state_path = Path(state_path) if state_path is not None else None
         self.persist_every_s = float(persist_every_s)
-        self._held_acks: list[Outgoing] = []
-        self._last_persist = float("-inf")
+        self.writer = self.acks = None
+        if self.state_path is not None:
+            self.writer = StateWriter(self.state_path, background=persist_background,
+                                      retry_s=max(persist_every_s, 0.1),
+                                      log_every_s=persist_log_every_s)
+            self.acks = AckGate(self.writer, persist_every_s, self.publish)
         self.restored = False
         self._t_start = time.monotonic()
         self._status: dict = {}
@@ -101,7 +114,7 @@ class ServerNode:
         """Declare presence, subscriptions, the status queryable and the liveliness watch."""
         queue = max(self.cfg.transport.queue_size, 1024)
         s = self.session
-        if self.state_path is not None and self.state_path.is_file():
+        if self.state_path is not None and durable.has_generation(self.state_path):
             self._restore(self.state_path)
         self._subs = [self.bus.subscribe(keys.all_agents(s), queue_size=queue),
                       self.bus.subscribe(keys.server_control(s), queue_size=16)]
@@ -124,6 +137,8 @@ class ServerNode:
                     getattr(handle, name)()
                     break
         self._handles, self._subs = [], []
+        if self.writer is not None:
+            self.writer.close()
 
     def run(self, poll_s: float = 0.05, stop: threading.Event | None = None) -> FinalResult | None:
         """Serve until a Control message (or `stop`) ends it; finalise unless told to shut
@@ -133,7 +148,7 @@ class ServerNode:
                 # Idle: block on the agents' queue (not a sleep) so a message is handled as
                 # soon as it arrives; control and liveliness are seen within poll_s.
                 self._subs[0].wait(timeout=poll_s)
-        if self._held_acks:
+        if self.acks is not None and self.acks.pending:
             self.persist()
         if self.control is not None and self.control.action == "shutdown":
             logger.info("shutdown requested: %s", self.control.reason)
@@ -170,8 +185,10 @@ class ServerNode:
         with self._lock:
             for _, _, msg, nbytes in batch:
                 out = self.backend.handle(msg, nbytes)
-                if self.state_path is not None:
-                    self._held_acks += [o for o in out if isinstance(o.message, Ack)]
+                if self.acks is not None:
+                    for o in out:
+                        if isinstance(o.message, Ack):
+                            self.acks.hold(o)
                     out = [o for o in out if not isinstance(o.message, Ack)]
                 self.publish(out)
             try:
@@ -179,25 +196,28 @@ class ServerNode:
             except Exception:  # noqa: BLE001 - the server outlives a failing step
                 self.step_errors += 1
                 logger.exception("back-end step failed (%d so far)", self.step_errors)
-            if self._held_acks and time.monotonic() - self._last_persist >= self.persist_every_s:
-                self.persist()
+            if self.acks is not None:
+                self.acks.tick(self._state_snapshot)
             self._snapshot()
         return len(batch)
 
-    def persist(self) -> None:
-        """Write the accepted state (atomically), then release the acks it covers."""
-        if self.state_path is None:
-            return
-        import torch
-
+    def persist(self, timeout_s: float | None = None) -> bool:
+        """Snapshot the accepted state now, wait (up to `timeout_s`) for its write and release
+        the acks it covers. Returns whether it is durable (False: a failed write; the acks
+        stay held and the writer retries)."""
+        if self.acks is None:
+            return True
         with self._lock:
-            self.state_path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = self.state_path.with_suffix(".tmp")
-            torch.save(self.backend.state_dict(), tmp)
-            os.replace(tmp, self.state_path)
-            self._last_persist = time.monotonic()
-            acks, self._held_acks = self._held_acks, []
-            self.publish(acks)
+            gen = self.acks.submit(self._state_snapshot())
+        ok = self.writer.wait(gen, timeout_s)
+        with self._lock:
+            self.acks.release()
+        return ok
+
+    def _state_snapshot(self) -> dict:
+        # The arrays in state_dict are copies; detach copies the containers, so the loop
+        # may go on changing the back end while the writer thread pickles this.
+        return detach(self.backend.state_dict())
 
     def publish(self, out: list[Outgoing]) -> None:
         """Encode and put each outgoing message on its key (too large: logged, dropped)."""
@@ -248,8 +268,9 @@ class ServerNode:
                            self.image_timeout_s)
         return None
 
-    def finalise(self) -> FinalResult:
-        """Final optimisation and export into the run folder (once)."""
+    def finalise(self, mark_complete: bool = True) -> FinalResult:
+        """Final optimisation and export into the run folder (once); without `mark_complete`
+        metrics.json is left to the caller (`export.write_metrics`, after its own outputs)."""
         with self._lock:
             if self.finalised is None:
                 self.persist()
@@ -268,20 +289,23 @@ class ServerNode:
                     "per_group": traffic_per_group(self.session, traffic["sent"], uptime)}
                 self.finalised.metrics["process"] = {
                     "peak_rss_mb": peak_rss_mb(), "uptime_s": time.monotonic() - self._t_start}
-                export_run(self.finalised, self.run_dir)
+                export_run(self.finalised, self.run_dir, mark_complete=mark_complete)
         return self.finalised
 
     # ------------------------------------------------------------------------- helpers
 
     def _restore(self, path: Path) -> None:
+        import io
+
         import torch
 
         try:
-            state = torch.load(path, weights_only=True)
+            state, path = durable.load_generation(
+                path, lambda data: torch.load(io.BytesIO(data), weights_only=True))
             self.backend.load_state_dict(state)
         except Exception as exc:  # noqa: BLE001 - a bad state file must not be half-loaded
             raise RuntimeError(f"{path}: cannot restore the server state ({exc}); move the "
-                               "file away to start this run afresh") from exc
+                               "file and its .prev away to start this run afresh") from exc
         self.restored = True
         status = self.backend.status()
         logger.info("restored server state from %s: agents %s, groups %d", path,
@@ -309,6 +333,9 @@ class ServerNode:
             if agent in summary.get("agents", {}):
                 summary["agents"][agent]["alive"] = alive
         summary["bus_dropped"] = dict(self.dropped)
+        if self.writer is not None:  # a full disk shows here, not only in the log
+            summary["persist"] = {"generation": self.writer.durable_gen,
+                                  "failures": self.writer.failures}
         summary["stale_s"] = round(time.monotonic() - self._status_at, 3)
         return protocol.encode(Status(stamp=time.time(), summary=summary))
 

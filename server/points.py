@@ -133,8 +133,10 @@ class PointTable:
                      np.zeros(0, np.int64))
 
     def state_dict(self) -> dict:
+        # Features stay float16 as in the table (and on the wire): a float32 copy doubled
+        # the state the server snapshots and writes (bench/persist.py). States written
+        # with float32 features load the same.
         out = {name: torch.from_numpy(getattr(self, name).copy()) for name in _COLUMNS}
-        out["features"] = out["features"].float()  # torch.save handles float16 too; keep f32
         out["tombstones"] = torch.tensor(sorted(self.tombstones.items()),
                                          dtype=torch.int64).reshape(-1, 2)
         return out

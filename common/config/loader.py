@@ -86,10 +86,10 @@ def load_config_file(path: Path | str) -> CpslamConfig:
 
 def save_config(cfg: CpslamConfig, path: Path | str) -> None:
     """Write `cfg` as YAML (paths as strings, tuples as lists), creating parent folders."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    from cpslam.common.durable import write_text_atomic
+
     text = yaml.safe_dump(config_to_dict(cfg), sort_keys=False, default_flow_style=False)
-    path.write_text("# cpslam effective configuration\n" + text, encoding="utf-8")
+    write_text_atomic(path, "# cpslam effective configuration\n" + text)
 
 
 def config_to_dict(cfg: CpslamConfig) -> dict[str, Any]:

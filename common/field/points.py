@@ -350,10 +350,10 @@ class NeuralPointMap:
         self._touch()
 
     def save(self, path: str | Path) -> None:
-        """Write the whole map to one file (torch.save of plain tensors)."""
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        torch.save(self.state_dict(), path)
+        """Write the whole map to one file (torch.save of plain tensors), atomically."""
+        from cpslam.common.durable import torch_save_atomic
+
+        torch_save_atomic(self.state_dict(), path)
 
     @classmethod
     def load(cls, path: str | Path, device: str | torch.device = "cpu") -> NeuralPointMap:

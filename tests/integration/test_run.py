@@ -50,14 +50,33 @@ def test_two_agents_merge_and_agree_with_ground_truth(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
-def test_single_agent_run_writes_all_outputs(tmp_path: Path) -> None:
+def test_single_agent_run_writes_all_outputs(tmp_path: Path, monkeypatch) -> None:
+    import os
+
     from cpslam.tools.synth import generate
 
     data = generate(tmp_path / "room", scene="room", frames=30, width=160, height=120, seed=0,
                     loop=True)
     out = tmp_path / "run"
+    renamed: list[Path] = []
+    real_replace = os.replace
+
+    def replace(src, dst) -> None:
+        renamed.append(Path(dst))
+        real_replace(src, dst)
+
+    monkeypatch.setattr(os, "replace", replace)
     _invoke(["--seq", str(data.agent_dirs[0]), "--preset", "tiny", "--set",
              "mapping.iters_first=30", "--out", str(out), "--no-progress"])
+    written = [p for p in renamed if p.is_relative_to(out)]
+    mark = written.index(out / "metrics.json")
+    # The completion mark comes after every output of the run; only the report, which
+    # reads the finished run, follows it.
+    assert [p.name for p in written[mark + 1:]] == ["report.json"]
+    # The report's figures and mesh (matplotlib, open3d) are written by those libraries.
+    report_files = {out / "mesh.ply", *out.glob("plots/*")}
+    outputs = {p for p in out.rglob("*") if p.is_file() and p.suffix != ".log"}
+    assert outputs - report_files <= set(written), "every output is renamed into place (atomic)"
     for name in ("config.yaml", "metrics.json", "fused_map.ply", "fused_map.pt",
                  "pose_graph.g2o", "evaluation.json", "trajectories/agent_0_local.tum",
                  "trajectories/agent_0_global.tum", "agent_0/trajectory.tum",

@@ -50,15 +50,16 @@ def _setup(tmp_path: Path, persist_every_s: float):
     cfg = load_config("tiny")
     network = InMemoryNetwork()
     server_bus, agent_bus = InMemoryBus(network), InMemoryBus(network)
+    # The state is written in the poll loop here, so each poll's acks are out when it returns.
     node = ServerNode(cfg, server_bus, tmp_path, state_path=tmp_path / "state.pt",
-                      persist_every_s=persist_every_s).start()
+                      persist_every_s=persist_every_s, persist_background=False).start()
     acks = agent_bus.subscribe(keys.server_agent_ack(SESSION, "a"), queue_size=64)
     return node, agent_bus, acks
 
 
 def test_acks_wait_for_the_state_on_disk_and_a_restart_restores_it(tmp_path: Path) -> None:
     node, agent_bus, acks = _setup(tmp_path, persist_every_s=3600.0)
-    node._last_persist = time.monotonic()  # the next write is an hour away
+    node.acks.last_snapshot = time.monotonic()  # the next write is an hour away
     agent_bus.publish(keys.agent_keyframe(SESSION, "a"), protocol.encode(_keyframe("a", 0, 0)))
     _settle(agent_bus)
     node.poll()
