@@ -4,6 +4,7 @@ A counter keyed by a remote key (a message key, a drop reason that quotes the me
 with every distinct key a peer invents; `CappedCounter` keeps at most ``max_keys`` of them and
 counts the rest under ``"other"``. A warning per bad message becomes a flood of log lines;
 `LogThrottle` lets one line per subject through per interval and says how many it held back.
+`tensor_mismatch` checks named tensors from a peer against the shapes the local config gives.
 """
 
 from __future__ import annotations
@@ -12,8 +13,9 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Callable, Iterator, Mapping
+from typing import Any
 
-__all__ = ["OTHER", "CappedCounter", "LogThrottle"]
+__all__ = ["OTHER", "CappedCounter", "LogThrottle", "tensor_mismatch"]
 
 OTHER = "other"
 """The bucket of a `CappedCounter` that takes every key beyond its cap."""
@@ -83,3 +85,19 @@ class LogThrottle:
                 self._last.pop(next(iter(self._last)))
             self._last[subject] = (t, 0)
             return 0 if last is None else last[1]
+
+
+def tensor_mismatch(tensors: Mapping[str, Any], expected: Mapping[str, tuple[int, ...]],
+                    source: str = "field config") -> str:
+    """Why named `tensors` (anything with ``.shape``) are not of the `expected` names and
+    shapes ("" if they are); the text names the field, what was expected and what came."""
+    if set(tensors) != set(expected):
+        missing = sorted(set(expected) - set(tensors))[:3]
+        extra = sorted(set(tensors) - set(expected))[:3]
+        return (f"field tensors: names differ from the {source}'s (missing {missing}, "
+                f"unknown {extra})")
+    for name, value in tensors.items():
+        if tuple(value.shape) != tuple(expected[name]):
+            return (f"field tensors[{name!r}] has shape {list(value.shape)}, expected "
+                    f"{list(expected[name])} ({source})")
+    return ""

@@ -30,7 +30,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
-from cpslam.common.bounds import CappedCounter, LogThrottle
+from cpslam.common.bounds import CappedCounter, LogThrottle, tensor_mismatch
 from cpslam.common.field import NeuralPointMap
 from cpslam.common.geometry import compose, invert
 from cpslam.protocol import Ack, DecoderWeights, FramePoses, KeyframeMsg, Message, SubmapDelta
@@ -355,7 +355,7 @@ class Registry:
 
     def _decoder(self, rec: AgentRecord, msg: DecoderWeights) -> str:
         if self.decoder_shapes is not None:
-            reason = decoder_mismatch(msg.tensors, self.decoder_shapes)
+            reason = tensor_mismatch(msg.tensors, self.decoder_shapes)
             if reason:
                 return reason
         n = int(msg.n_samples)
@@ -484,21 +484,6 @@ class Registry:
             self.dropped.add(reason, count)
         self.new_keyframes = [(str(a), int(k)) for a, k in state["new_keyframes"]]
         self.new_decoders = []
-
-
-def decoder_mismatch(tensors: dict[str, np.ndarray],
-                     expected: dict[str, tuple[int, ...]]) -> str:
-    """Why `tensors` are not a decoder of the `expected` names and shapes ("" if they are)."""
-    names = set(tensors)
-    if names != set(expected):
-        missing = sorted(set(expected) - names)[:3]
-        extra = sorted(names - set(expected))[:3]
-        return f"field tensors: names differ from the config's (missing {missing}, unknown {extra})"
-    for name, value in tensors.items():
-        if tuple(value.shape) != tuple(expected[name]):
-            return (f"field tensors[{name!r}] has shape {list(value.shape)}, expected "
-                    f"{list(expected[name])} (field config)")
-    return ""
 
 
 def registry_args(limits: LimitsConfig, descriptor_dim: int) -> dict[str, Any]:
