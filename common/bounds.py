@@ -22,7 +22,8 @@ OTHER = "other"
 
 
 class CappedCounter(Mapping[str, int]):
-    """Counts per key, at most `max_keys` keys; further keys count under `OTHER`.
+    """Counts per key, at most `max_keys` keys (`OTHER` included): once ``max_keys - 1``
+    keys are counted, further keys count under `OTHER`.
 
     Reads like a read-only mapping (``dict(counter)``, ``counter[key]``: 0 when absent).
     """
@@ -35,8 +36,10 @@ class CappedCounter(Mapping[str, int]):
 
     def add(self, key: str, count: int = 1) -> str:
         """Count `key` (or `OTHER` when the cap is reached); returns the key counted."""
-        if key not in self._counts and len(self._counts) >= self.max_keys:
-            key = OTHER
+        if key not in self._counts:
+            named = len(self._counts) - (OTHER in self._counts)
+            if named >= self.max_keys - 1:
+                key = OTHER
         self._counts[key] += count
         return key
 
@@ -63,8 +66,12 @@ class LogThrottle:
         now: the clock (monotonic seconds), injectable for tests.
     """
 
-    def __init__(self, interval_s: float = 5.0, max_subjects: int = 256,
-                 now: Callable[[], float] = time.monotonic) -> None:
+    def __init__(
+        self,
+        interval_s: float = 5.0,
+        max_subjects: int = 256,
+        now: Callable[[], float] = time.monotonic,
+    ) -> None:
         self.interval_s = float(interval_s)
         self.max_subjects = int(max_subjects)
         self.now = now
@@ -87,17 +94,23 @@ class LogThrottle:
             return 0 if last is None else last[1]
 
 
-def tensor_mismatch(tensors: Mapping[str, Any], expected: Mapping[str, tuple[int, ...]],
-                    source: str = "field config") -> str:
+def tensor_mismatch(
+    tensors: Mapping[str, Any],
+    expected: Mapping[str, tuple[int, ...]],
+    source: str = "field config",
+) -> str:
     """Why named `tensors` (anything with ``.shape``) are not of the `expected` names and
     shapes ("" if they are); the text names the field, what was expected and what came."""
     if set(tensors) != set(expected):
         missing = sorted(set(expected) - set(tensors))[:3]
         extra = sorted(set(tensors) - set(expected))[:3]
-        return (f"field tensors: names differ from the {source}'s (missing {missing}, "
-                f"unknown {extra})")
+        return (
+            f"field tensors: names differ from the {source}'s (missing {missing}, unknown {extra})"
+        )
     for name, value in tensors.items():
         if tuple(value.shape) != tuple(expected[name]):
-            return (f"field tensors[{name!r}] has shape {list(value.shape)}, expected "
-                    f"{list(expected[name])} ({source})")
+            return (
+                f"field tensors[{name!r}] has shape {list(value.shape)}, expected "
+                f"{list(expected[name])} ({source})"
+            )
     return ""

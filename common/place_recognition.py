@@ -58,5 +58,7 @@ def _read_weights(path: Path) -> dict[str, np.ndarray]:
         raw = torch.load(path, map_location="cpu", weights_only=True)
         return {k: np.asarray(v) for k, v in raw.items()}
     except Exception as err:
-        raise ValueError(f"{path}: cannot read place recognition weights to find the "
-                         f"descriptor length ({err}); set limits.descriptor_dim") from err
+        raise ValueError(
+            f"{path}: cannot read place recognition weights to find the "
+            f"descriptor length ({err}); set limits.descriptor_dim"
+        ) from err

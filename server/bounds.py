@@ -12,14 +12,26 @@ import copy
 from collections.abc import Callable
 from typing import Any
 
-__all__ = ["fit_status"]
+import msgpack
+
+__all__ = ["fit_status", "status_size"]
 
 # Tables of the summary whose rows are ranked by one number (the biggest are kept).
 _RANK = {"agents": "messages"}
 
 
-def fit_status(summary: dict[str, Any], size: Callable[[dict[str, Any]], int],
-               budget: int) -> dict[str, Any]:
+def status_size(summary: dict[str, Any]) -> int:
+    """Encoded bytes of a `Status` reply carrying `summary` (no cap applied)."""
+    return len(
+        msgpack.packb(
+            {"type": "status", "version": 1, "stamp": 0.0, "summary": summary}, use_bin_type=True
+        )
+    )
+
+
+def fit_status(
+    summary: dict[str, Any], size: Callable[[dict[str, Any]], int], budget: int
+) -> dict[str, Any]:
     """`summary`, or a trimmed copy whose `size` (encoded bytes) is at most `budget`.
 
     A trimmed copy has ``"truncated": {"entries_per_table", "budget_bytes", "omitted":
@@ -32,13 +44,17 @@ def fit_status(summary: dict[str, Any], size: Callable[[dict[str, Any]], int],
         n //= 2
         omitted: dict[str, int] = {}
         trimmed = _trim(copy.deepcopy(summary), n, "", omitted)
-        trimmed["truncated"] = {"entries_per_table": n, "budget_bytes": budget,
-                                "omitted": _top(omitted, n)}
+        trimmed["truncated"] = {
+            "entries_per_table": n,
+            "budget_bytes": budget,
+            "omitted": _top(omitted, n),
+        }
         if size(trimmed) <= budget:
             return trimmed
     # Not even empty tables fit (huge scalars): only numbers are left.
     return {k: v for k, v in summary.items() if isinstance(v, int | float)} | {
-        "truncated": {"entries_per_table": 0, "budget_bytes": budget, "omitted": {}}}
+        "truncated": {"entries_per_table": 0, "budget_bytes": budget, "omitted": {}}
+    }
 
 
 def _longest(node: Any) -> int:
@@ -60,7 +76,7 @@ def _trim(node: Any, n: int, path: str, omitted: dict[str, int]) -> Any:
         if len(node) > n:
             omitted[path] = len(node) - n
         # Lists are in arrival order: the newest are at the end.
-        kept = node[len(node) - n:] if n else []
+        kept = node[len(node) - n :] if n else []
         return [_trim(v, n, path, omitted) for v in kept]
     return node
 
@@ -92,4 +108,4 @@ def _keep(table: dict, n: int, path: str, omitted: dict[str, int]) -> dict:
 
 def _top(omitted: dict[str, int], n: int) -> dict[str, int]:
     """The `n` paths with the most rows cut (per-agent paths repeat per agent)."""
-    return dict(sorted(omitted.items(), key=lambda kv: -kv[1])[:max(n, 1)])
+    return dict(sorted(omitted.items(), key=lambda kv: -kv[1])[: max(n, 1)])

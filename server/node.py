@@ -43,7 +43,7 @@ from cpslam.protocol import (
     keys,
 )
 from cpslam.server.backend import Backend, Outgoing
-from cpslam.server.bounds import fit_status
+from cpslam.server.bounds import fit_status, status_size
 from cpslam.server.export import export_run
 from cpslam.server.traffic import DecoderFanout, KeyCounter, traffic_per_agent, traffic_per_group
 
@@ -328,13 +328,8 @@ class ServerNode:
                 summary["agents"][agent]["alive"] = alive
         summary["bus_dropped"] = dict(self.dropped)
         summary["stale_s"] = round(time.monotonic() - self._status_at, 3)
-        stamp = time.time()
-
-        def size(s: dict) -> int:
-            return len(protocol.encode(Status(stamp=stamp, summary=s)))
-
-        return protocol.encode(Status(stamp=stamp, summary=fit_status(summary, size,
-                                                                      self.status_budget)))
+        summary = fit_status(summary, status_size, self.status_budget)
+        return protocol.encode(Status(stamp=time.time(), summary=summary))
 
     def _snapshot(self) -> None:
         status = self.backend.status()

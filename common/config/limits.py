@@ -48,7 +48,8 @@ class LimitsConfig(Section):
     @model_validator(mode="after")
     def _check(self) -> LimitsConfig:
         if self.status_reply_kb > STATUS_MESSAGE_KB:
-            raise ValueError(f"status_reply_kb ({self.status_reply_kb}) must be at most "
-                             f"{STATUS_MESSAGE_KB} (the protocol's cap on a status message)")
+            raise ValueError(
+                f"status_reply_kb ({self.status_reply_kb}) must be at most "
+                f"{STATUS_MESSAGE_KB} (the protocol's cap on a status message)"
+            )
         return self
-
