@@ -15,7 +15,16 @@ from cpslam.common.bus.subscription import Sample, Subscription
 from cpslam.common.bus.zenoh_bus import zenoh_config
 from cpslam.common.config import ConfigError, load_config
 from cpslam.common.place_recognition import descriptor_dim
-from cpslam.protocol import Ack, DecoderWeights, FramePoses, KeyframeMsg, Status, SubmapDelta
+from cpslam.protocol import (
+    Ack,
+    DecoderWeights,
+    FramePoses,
+    KeyframeImage,
+    KeyframeMsg,
+    Status,
+    SubmapDelta,
+    keys,
+)
 from cpslam.server.bounds import fit_status, status_size
 from cpslam.server.registry import Registry, registry_args
 from cpslam.server.traffic import KeyCounter
@@ -352,3 +361,69 @@ def test_status_always_fits_its_budget() -> None:
     small = {"agents": {"a": {"messages": 1}}, "merges": 0}
     assert fit_status(small, _size, 4096) is small
     json.dumps(fit_status(summary, _size, 100))  # even a tiny budget gives valid JSON
+
+
+# ------------------------------------------------------------------------- node, pipeline
+
+
+def _image(agent: str, kf: int, side: int = 64) -> KeyframeImage:
+    return KeyframeImage.from_metres(
+        np.ones((side, side), np.float32),
+        agent_id=agent,
+        kf_id=kf,
+        fx=50.0,
+        fy=50.0,
+        cx=side / 2,
+        cy=side / 2,
+        width=side,
+        height=side,
+        rgb_codec="png",
+        rgb=np.zeros((side, side, 3), np.uint8),
+    )
+
+
+def test_image_cache_is_bounded_in_bytes() -> None:
+    from cpslam.server.loops import LoopPipeline
+
+    one = 64 * 64 * 5  # rgb uint8 x3 + depth uint16
+    cfg = load_config("tiny", env={})
+    pipeline = LoopPipeline(
+        cfg.loop, lambda a, k: _image(a, k), time.monotonic, 0.0, image_cache_bytes=3 * one
+    )
+    for kf in range(10):
+        assert pipeline.image("a", kf).kf_id == kf
+    assert len(pipeline._images) == 3 and pipeline._image_bytes == 3 * one
+    assert list(pipeline._images) == [("a", 7), ("a", 8), ("a", 9)]
+
+
+def test_an_image_reply_for_another_keyframe_is_dropped(tmp_path) -> None:
+    from cpslam.server.node import ServerNode
+
+    cfg = load_config("tiny", env={})
+    network = InMemoryNetwork()
+    with InMemoryBus(network) as server_bus, InMemoryBus(network) as agent_bus:
+        node = ServerNode(cfg, server_bus, tmp_path, image_timeout_s=5.0).start()
+        answer = {"kf": 3}
+
+        def serve(key: str, payload: bytes | None) -> bytes:
+            return protocol.encode(_image("a", answer["kf"]))
+
+        with agent_bus.declare_queryable(keys.agent_image_queryable("default", "a"), serve):
+            assert node.fetch_image("a", 3).kf_id == 3
+            answer["kf"] = 4  # a buggy or hostile agent answers with another keyframe
+            assert node.fetch_image("a", 3) is None
+        assert sum(node.dropped.values()) == 1
+        node.close()
+
+
+def test_presence_of_agents_beyond_the_cap_is_ignored(tmp_path) -> None:
+    from cpslam.server.node import ServerNode
+
+    cfg = load_config("tiny", overrides=["limits.max_agents=4"], env={})
+    with InMemoryBus() as bus:
+        node = ServerNode(cfg, bus, tmp_path)
+        for i in range(1000):
+            node._joined(keys.alive_agent("default", f"x{i}"))
+        assert len(node._present) == 4 and len(node._events) <= 16
+        node._left(keys.alive_agent("default", "x0"))
+        assert node._present["x0"] is False
