@@ -87,10 +87,12 @@ def bus_from_config(
 
 
 def open_client(transport: TransportConfig, wait_timeout_s: float, what: str = "agent",
-                stop: threading.Event | None = None) -> Bus | None:
+                stop: threading.Event | None = None,
+                limits: LimitsConfig | None = None) -> Bus | None:
     """A client bus to the configured endpoints, retried until `wait_timeout_s`; None if the
     server could not be reached, or at once when `stop` is set (the caller tells which).
-    `what` names the caller in the log lines ("agent 0", "client")."""
+    `what` names the caller in the log lines ("agent 0", "client"); `limits` as in
+    `bus_from_config`."""
     t0 = time.monotonic()
     deadline = t0 + wait_timeout_s
     endpoints = ", ".join(transport.connect) or f"tcp/127.0.0.1:{DEFAULT_PORT}"
@@ -105,7 +107,7 @@ def open_client(transport: TransportConfig, wait_timeout_s: float, what: str = "
             announced = True
 
     while not stop.is_set():
-        attempt = _OpenAttempt(transport)
+        attempt = _OpenAttempt(transport, limits)
         while not attempt.done.wait(STOP_CHECK_S):
             if stop.is_set():
                 attempt.abandon()
@@ -129,19 +131,19 @@ class _OpenAttempt:
     """One `bus_from_config` on its own thread: opening a client session blocks for up to
     ``transport.open_timeout_s``, and a stop request must not wait for that."""
 
-    def __init__(self, transport: TransportConfig) -> None:
+    def __init__(self, transport: TransportConfig, limits: LimitsConfig | None = None) -> None:
         self.done = threading.Event()
         self.bus: Bus | None = None
         self.error: Exception | None = None
         self._lock = threading.Lock()
         self._abandoned = False
-        threading.Thread(target=self._run, args=(transport,), name="bus-open",
+        threading.Thread(target=self._run, args=(transport, limits), name="bus-open",
                          daemon=True).start()
 
-    def _run(self, transport: TransportConfig) -> None:
+    def _run(self, transport: TransportConfig, limits: LimitsConfig | None) -> None:
         bus = None
         try:
-            bus = bus_from_config(transport, "agent")
+            bus = bus_from_config(transport, "agent", limits=limits)
         except Exception as err:  # noqa: BLE001 - handed to the waiting thread
             self.error = err
         with self._lock:
