@@ -427,3 +427,50 @@ def test_presence_of_agents_beyond_the_cap_is_ignored(tmp_path) -> None:
         assert len(node._present) == 4 and len(node._events) <= 16
         node._left(keys.alive_agent("default", "x0"))
         assert node._present["x0"] is False
+
+
+def test_the_agent_daemon_survives_server_messages_it_cannot_apply(
+    tmp_path, monkeypatch, caplog
+) -> None:
+    from cpslam.agent.node import AgentNode
+    from cpslam.common.datasets import open_sequence
+    from cpslam.protocol import GroupDecoder, ServerUpdate
+    from cpslam.tools.synth import generate
+
+    seq = open_sequence(generate(tmp_path / "s", frames=3, width=64, height=48).agent_dirs[0])
+    cfg = load_config("tiny", env={})
+
+    def describe(rgb: np.ndarray) -> np.ndarray:
+        return np.full(D, D**-0.5, np.float32)
+
+    with InMemoryBus() as bus:
+        node = AgentNode(cfg, seq, bus, "a0", tmp_path / "run", describe=describe).start()
+        shapes = {k: tuple(v.shape) for k, v in node.odometry.decoders.state_dict().items()}
+        wrong = {k: np.zeros((3, 1), np.float32) for k in shapes}  # a server on another preset
+        decoder = GroupDecoder(group_id="a0", round=1, members=["a0"], n_samples=1, tensors=wrong)
+        bus.publish(keys.server_group_decoder("default", "a0"), protocol.encode(decoder))
+        update = ServerUpdate(
+            agent_id="a0",
+            seq=1,
+            epoch=1,
+            group_id="a0",
+            group_members=["a0"],
+            T_group_agent=np.eye(4),
+            kf_ids=np.zeros(0, np.int32),
+            T_group_kf=np.zeros((0, 4, 4)),
+        )
+
+        def fail(msg: ServerUpdate) -> None:
+            raise RuntimeError("cannot apply")
+
+        monkeypatch.setattr(node.link, "apply_update", fail)
+        bus.publish(keys.server_agent_update("default", "a0"), protocol.encode(update))
+        with bus.subscribe("test/settle") as marker:
+            bus.publish("test/settle", b"")
+            assert marker.get(timeout=30.0) is not None
+        with caplog.at_level("WARNING"):
+            assert node.poll() == 2
+        assert node.dropped == 1 and node.link.round == 0
+        assert "has shape [3, 1], expected" in caplog.text and "applying it failed" in caplog.text
+        assert {k: tuple(v.shape) for k, v in node.odometry.decoders.state_dict().items()} == shapes
+        node.close()
