@@ -365,7 +365,9 @@ class ServerNode:
                 refused = False
                 if agent is not None:
                     self._present[agent] = alive
-                if len(self._events) < 4 * self.max_agents:
+                # An admitted agent's event is always kept (a lost leave would keep a round
+                # waiting for it); a malformed key only gets its log line while there is room.
+                if agent is not None or len(self._events) < 4 * self.max_agents:
                     self._events.append((kind, key))
         if refused and self._log.allow("presence cap") is not None:
             logger.warning("liveliness of agent %s ignored: already %d agents (limits."

@@ -424,6 +424,8 @@ def test_presence_of_agents_beyond_the_cap_is_ignored(tmp_path) -> None:
         node = ServerNode(cfg, bus, tmp_path)
         for i in range(1000):
             node._joined(keys.alive_agent("default", f"x{i}"))
+        for i in range(1000):
+            node._joined(f"cpslam/default/alive/agent/bad{i}/x")  # malformed token keys
         assert len(node._present) == 4 and len(node._events) <= 16
         node._left(keys.alive_agent("default", "x0"))
         assert node._present["x0"] is False
