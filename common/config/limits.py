@@ -26,7 +26,7 @@ class LimitsConfig(Section):
     """Sub-map points of one agent waiting for their keyframe; the oldest beyond it are dropped."""
     max_seq_ahead: PositiveInt = 100_000
     """A message whose seq is this far beyond the agent's acknowledged one is dropped unacked."""
-    max_removed_per_message: PositiveInt = 200_000
+    max_removed_per_message: PositiveInt = 500_000
     """Removed point ids one sub-map delta may carry; a larger delta is refused whole."""
     max_tombstones: PositiveInt = 2_000_000
     """Removed point ids remembered per agent; beyond it the oldest removals are forgotten."""
