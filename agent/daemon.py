@@ -89,7 +89,7 @@ def run_networked(cfg: CpslamConfig, seq: RGBDSequence, agent_id: str, run_dir: 
     from cpslam.common.logs import make_progress
 
     stop = stop if stop is not None else threading.Event()
-    bus = open_client(cfg.transport, wait_timeout_s, f"agent {agent_id}", stop)
+    bus = open_client(cfg.transport, wait_timeout_s, f"agent {agent_id}", stop, cfg.limits)
     if bus is None:
         if stop.is_set():
             logger.info("agent %s: interrupted while waiting for the server", agent_id)

@@ -26,6 +26,7 @@ import torch.nn.functional as F
 
 from cpslam.agent.aggregation import GeM, NetVLAD, assignment_alpha, kmeans, procedural_images
 from cpslam.agent.efficientnet import STAGES, load_efficientnet_lite0, normalize
+from cpslam.common.place_recognition import DEFAULT_LAYER, MAX_DIM
 
 if TYPE_CHECKING:
     from cpslam.common.config.collab import PlaceRecognitionConfig
@@ -34,11 +35,6 @@ __all__ = ["DEFAULT_LAYER", "MAX_DIM", "DescriptorExtractor", "load_weights", "p
 
 logger = logging.getLogger(__name__)
 
-DEFAULT_LAYER = "stage6"
-"""Backbone feature map used by default (192 channels at stride 32), chosen by measured recall
-(docs/place_recognition.md)."""
-MAX_DIM = 4096
-"""Descriptors longer than this are reduced by a seeded count sketch (`_count_sketch`)."""
 INIT_IMAGES = 48
 """Number of procedural images whose local features seed the untrained NetVLAD centres."""
 

@@ -32,6 +32,7 @@ import numpy as np
 import torch
 
 from cpslam.agent.keyframes import DEPTH_SCALE
+from cpslam.common.bounds import tensor_mismatch
 from cpslam.common.geometry import compose, invert
 from cpslam.protocol import (
     Ack,
@@ -55,6 +56,9 @@ if TYPE_CHECKING:
 __all__ = ["AgentLink"]
 
 logger = logging.getLogger(__name__)
+
+MAX_WAITING_DECODERS = 16
+"""Shared decoders of other groups an agent holds on to (the newest groups first)."""
 
 Describe = Callable[[np.ndarray], np.ndarray]
 
@@ -274,11 +278,21 @@ class AgentLink:
 
     def apply_decoder(self, msg: GroupDecoder) -> bool:
         """Load a newer shared decoder of this agent's group; one of another group is kept in
-        case this agent joins that group later. Returns True when loaded."""
+        case this agent joins that group later (the newest MAX_WAITING_DECODERS groups).
+        Tensors whose names or shapes differ from this agent's decoders (a server on another
+        preset) are logged and dropped. Returns True when loaded."""
+        expected = {k: tuple(v.shape) for k, v in self.odometry.decoders.state_dict().items()}
+        reason = tensor_mismatch(msg.tensors, expected, "this agent's field config")
+        if reason:
+            logger.warning("agent %s: dropped group decoder %s#%d: %s", self.agent_id,
+                           msg.group_id, msg.round, reason)
+            return False
         if msg.group_id != self.group_id:
-            held = self._decoders_waiting.get(msg.group_id)
-            if held is None or msg.round > held.round:
-                self._decoders_waiting[msg.group_id] = msg
+            held = self._decoders_waiting.pop(msg.group_id, None)
+            self._decoders_waiting[msg.group_id] = (
+                msg if held is None or msg.round > held.round else held)
+            while len(self._decoders_waiting) > MAX_WAITING_DECODERS:
+                self._decoders_waiting.pop(next(iter(self._decoders_waiting)))
             return False
         if msg.round <= self.round:
             return False
@@ -413,3 +427,4 @@ def _append_points(pm: Any, agent: int, ids: np.ndarray, anchors: np.ndarray,
     nxt[agent] = max(nxt.get(agent, 0), int(ids.max()) + 1)
     state["next_point_id"] = torch.tensor(sorted(nxt.items()), dtype=torch.int64).reshape(-1, 2)
     pm.load_state_dict(state, source="foreign points")
+

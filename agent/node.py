@@ -141,18 +141,28 @@ class AgentNode:
         while (sample := self._server_sub.get(timeout=0)) is not None:
             msg = self._decode(sample.key, sample.payload, (ServerUpdate, Ack))
             if isinstance(msg, Ack):
-                self.link.on_ack(msg)
+                self._apply(sample.key, self.link.on_ack, msg)
             elif isinstance(msg, ServerUpdate):
                 with self._lock:
-                    self.link.apply_update(msg)
+                    self._apply(sample.key, self.link.apply_update, msg)
             n += 1
         while (sample := self._decoder_sub.get(timeout=0)) is not None:
             msg = self._decode(sample.key, sample.payload, GroupDecoder)
             if msg is not None:
                 with self._lock:
-                    self.link.apply_decoder(msg)
+                    self._apply(sample.key, self.link.apply_decoder, msg)
             n += 1
         return n
+
+    def _apply(self, key: str, apply: Any, msg: Any) -> None:
+        # A message that passed validation but cannot be applied (a server on another
+        # preset, a bug) is dropped: the daemon goes on with the next one.
+        try:
+            apply(msg)
+        except Exception:  # noqa: BLE001 - a daemon never dies of a bad message
+            self.dropped += 1
+            logger.exception("agent %s: dropped %s on %s: applying it failed", self.agent_id,
+                             type(msg).__name__, key)
 
     def flush(self) -> None:
         """End of the stream: let the mapping thread finish, send what it changed since the

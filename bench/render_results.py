@@ -220,8 +220,21 @@ def _persist(report: dict) -> str:
             "one torch thread.\n\n" + _table(rows) + "\n")
 
 
+def _flood(report: dict) -> str:
+    o, r = report["offered"], report["result"]
+    w = r["worst_poll_s"]
+    rows = [("caps", "worst poll s: malformed / agent ids / removed ids", "tracemalloc peak MB",
+             "agents held", "drop counter keys", "tombstones", "status bytes", "status s")]
+    rows.append((report["caps"], f"{w['malformed']} / {w['agent_ids']} / {w['removed_ids']}",
+                 r["tracemalloc_peak_mb"], r["agents_held"], r["drop_counter_keys"],
+                 r["tombstones"], r["status_bytes"], r["status_s"]))
+    return (f"{o['malformed']} malformed messages on distinct keys, {o['agents']} agent ids, "
+            f"one delta removing {o['removed_ids']} ids (tiny preset, in-memory bus, polls "
+            "timed under tracemalloc).\n\n" + _table(rows) + "\n")
+
+
 RENDERERS = {"odometry": _odometry, "loop_edges": _loop_edges, "collab": _collab,
-             "rerun_overhead": _rerun_overhead, "persist": _persist}
+             "rerun_overhead": _rerun_overhead, "persist": _persist, "flood": _flood}
 
 
 if __name__ == "__main__":

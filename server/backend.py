@@ -78,6 +78,8 @@ class Backend:
             no factory, no fine-tune); finetune_lr_features: point features' rate in the
             final one.
         share_every_s: how often merged groups get the other members' new points.
+        registry_args: `Registry`'s caps and expected shapes (`registry_args`; None: none).
+        image_cache_bytes: bytes of keyframe images the loop pipeline caches.
         verify_budget_s: a step stops verifying candidates after this many (wall-clock)
             seconds and leaves the rest for the next step, so a daemon stays responsive (acks,
             updates) while a backlog is worked off. None (lock-step runs): no limit, so the
@@ -105,6 +107,8 @@ class Backend:
         share_every_s: float = 10.0,
         verify_budget_s: float | None = None,
         retry_after_s: float = 5.0,
+        registry_args: dict[str, Any] | None = None,
+        image_cache_bytes: int | None = None,
     ) -> None:
         self.verify_budget_s = verify_budget_s
         self.loop_cfg, self.fed_cfg = loop, federation
@@ -115,14 +119,14 @@ class Backend:
         shapes = None
         if decoders_factory is not None:
             shapes = {n: tuple(t.shape) for n, t in decoders_factory().state_dict().items()}
-        self.registry = Registry(spec.feature_dim, shapes)
+        self.registry = Registry(spec.feature_dim, shapes, **(registry_args or {}))
         self.groups = Groups()
         self.corrected: dict[tuple[str, int], np.ndarray] = {}
         self.merges: list[dict] = []
         self.pose_graph_runs: list[dict] = []
         self.t_start = now()
         self.pipeline = LoopPipeline(loop, fetch_image, now, self.t_start, refine_pose, database,
-                                     register, seed, retry_after_s)
+                                     register, seed, retry_after_s, image_cache_bytes)
         self.federator = Federator(
             federation, self.registry, self.groups, self.pipeline.image, self.kf_poses,
             self.member_maps, now, self.t_start, spec, decoders_factory=decoders_factory,
@@ -135,9 +139,14 @@ class Backend:
                     None], **kwargs: Any) -> Backend:
         """A back end with the settings of a whole config (``kwargs`` override/add)."""
         from cpslam.common.field_config import field_spec
+        from cpslam.common.place_recognition import descriptor_dim
+        from cpslam.server.registry import registry_args
 
         spec = field_spec(cfg.field)
+        dim = cfg.limits.descriptor_dim or descriptor_dim(cfg.place_recognition)
         args: dict[str, Any] = {
+            "registry_args": registry_args(cfg.limits, dim),
+            "image_cache_bytes": int(cfg.limits.image_cache_mb * 2**20),
             "seed": cfg.run.seed,
             "decoders_factory": lambda: spec.decoders(cfg.run.seed),
             "finetune_lr": cfg.mapping.lr_decoders,
@@ -201,7 +210,7 @@ class Backend:
             acks = self.registry.handle(msg, nbytes)
         except Exception:  # noqa: BLE001 - a bad message must never stop the server
             logger.exception("internal error handling %s", type(msg).__name__)
-            self.registry.dropped["internal error"] += 1
+            self.registry.dropped.add("internal error")
             return []
         agent = getattr(msg, "agent_id", None)
         if agent in self.registry.agents:

@@ -124,7 +124,7 @@ def server(
     stop = threading.Event()
     _on_signals(stop)
     try:
-        bus = bus_from_config(cfg.transport, "server")
+        bus = bus_from_config(cfg.transport, "server", limits=cfg.limits)
     except (BusError, ValueError) as err:
         fail(f"cannot open the server endpoint: {err}", ExitCode.ERROR)
     with bus:

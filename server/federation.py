@@ -269,7 +269,7 @@ class Federator:
         # have applied the merge yet); afterwards only answers to the latest round do.
         first = group.decoder is None
         if not first and (msg.group_id != group.group_id or int(msg.round) != group.round):
-            self.registry.dropped["decoder weights for a past round or group"] += 1
+            self.registry.dropped.add("decoder weights for a past round or group")
             logger.debug("round: %s sent weights for %s#%d, group is at %s#%d", agent,
                         msg.group_id, msg.round, group.group_id, group.round)
             return

@@ -8,6 +8,11 @@ pulled with a bus query to the agent's image queryable (`fetch_image`). A status
 answers with `Backend.status()`. `finalise` runs the back end's final optimisation and writes
 the run folder (`export_run`).
 
+What peers key is bounded by the ``limits`` section: drop and traffic counters keep
+``max_counter_keys`` keys (then "other"), drop warnings are throttled, presence is tracked for
+at most ``max_agents`` agents, and the status reply is trimmed to ``status_reply_kb``
+(`fit_status`). An image reply must be the keyframe that was asked for.
+
 `run` is the daemon loop (poll until a `Control` asks to finalise or shut down); a driver
 that needs lock-step determinism (``cpslam run``) calls `poll` itself instead.
 """
@@ -18,12 +23,12 @@ import copy
 import logging
 import threading
 import time
-from collections import Counter
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from cpslam import protocol
 from cpslam.common import durable
+from cpslam.common.bounds import CappedCounter, LogThrottle
 from cpslam.common.rundir import peak_rss_mb
 from cpslam.protocol import (
     Ack,
@@ -38,6 +43,7 @@ from cpslam.protocol import (
     keys,
 )
 from cpslam.server.backend import Backend, Outgoing
+from cpslam.server.bounds import fit_status, status_size
 from cpslam.server.export import export_run
 from cpslam.server.persist import AckGate, StateWriter, detach
 from cpslam.server.traffic import DecoderFanout, KeyCounter, traffic_per_agent, traffic_per_group
@@ -96,7 +102,11 @@ class ServerNode:
         self.session = keys.check_id(cfg.transport.session, "transport.session")
         self.image_timeout_s = image_timeout_s
         self.backend = Backend.from_config(cfg, self.fetch_image, **backend_kwargs)
-        self.dropped: Counter[str] = Counter()
+        limits = cfg.limits
+        self.max_agents = limits.max_agents
+        self.status_budget = limits.status_reply_kb * 1024
+        self.dropped = CappedCounter(limits.max_counter_keys)
+        self._log = LogThrottle()
         self.control: Control | None = None
         self.step_errors = 0
         self.finalised: FinalResult | None = None
@@ -105,7 +115,8 @@ class ServerNode:
         self._events_lock = threading.Lock()
         self._handles: list[Any] = []
         self._subs: list[Any] = []
-        self._received = KeyCounter()  # agents' messages per concrete key (daemon thread only)
+        # Agents' messages per concrete key (daemon thread only).
+        self._received = KeyCounter(limits.max_counter_keys)
         self._fanout = DecoderFanout()  # group decoder bytes per receiving agent
 
     # ------------------------------------------------------------------------- lifecycle
@@ -260,6 +271,10 @@ class ServerNode:
                 continue
             msg = self._decode(key, reply.payload, (KeyframeImage, ErrorReply))
             if isinstance(msg, KeyframeImage):
+                if (msg.agent_id, int(msg.kf_id)) != (agent_id, int(kf_id)):
+                    self._drop(key, f"image reply is {msg.agent_id}/{msg.kf_id}, expected "
+                                    f"{agent_id}/{kf_id}")
+                    continue
                 return msg
             if isinstance(msg, ErrorReply):
                 logger.warning("image %s/%d: %s %s", agent_id, kf_id, msg.code, msg.reason)
@@ -320,8 +335,11 @@ class ServerNode:
             return None
 
     def _drop(self, key: str, reason: str) -> None:
-        self.dropped[key] += 1
-        logger.warning("dropped message on %s (%d so far): %s", key, self.dropped[key], reason)
+        counted = self.dropped.add(key)
+        held = self._log.allow("drop")
+        if held is not None:
+            logger.warning("dropped message on %s (%d so far on %s; %d other drops not logged): "
+                           "%s", key, self.dropped[counted], counted, held, reason[:500])
 
     def _serve_status(self, key: str, payload: bytes | None) -> bytes:
         # Never wait for a long back-end step: answer from the snapshot of the last poll,
@@ -337,6 +355,7 @@ class ServerNode:
             summary["persist"] = {"generation": self.writer.durable_gen,
                                   "failures": self.writer.failures}
         summary["stale_s"] = round(time.monotonic() - self._status_at, 3)
+        summary = fit_status(summary, status_size, self.status_budget)
         return protocol.encode(Status(stamp=time.time(), summary=summary))
 
     def _snapshot(self) -> None:
@@ -354,22 +373,32 @@ class ServerNode:
         return list(group.members) if group is not None else []
 
     def _joined(self, key: str) -> None:
-        self._presence(key, True)
-        with self._events_lock:
-            self._events.append(("join", key))
+        self._event("join", key, True)
 
     def _left(self, key: str) -> None:
-        self._presence(key, False)
-        with self._events_lock:
-            self._events.append(("leave", key))
+        self._event("leave", key, False)
 
-    def _presence(self, key: str, alive: bool) -> None:
+    def _event(self, kind: str, key: str, alive: bool) -> None:
         try:
             agent = keys.parse_alive_agent(self.session, key)
         except ProtocolError:
-            return  # reported when the event is handled
+            agent = None  # reported when the event is handled
         with self._events_lock:
-            self._present[agent] = alive
+            # Presence and events are keyed by peers' tokens: bounded like the registry.
+            if agent is not None and agent not in self._present and (
+                    len(self._present) >= self.max_agents):
+                refused = True
+            else:
+                refused = False
+                if agent is not None:
+                    self._present[agent] = alive
+                # An admitted agent's event is always kept (a lost leave would keep a round
+                # waiting for it); a malformed key only gets its log line while there is room.
+                if agent is not None or len(self._events) < 4 * self.max_agents:
+                    self._events.append((kind, key))
+        if refused and self._log.allow("presence cap") is not None:
+            logger.warning("liveliness of agent %s ignored: already %d agents (limits."
+                           "max_agents)", agent, self.max_agents)
 
     def _liveliness(self) -> None:
         with self._events_lock:

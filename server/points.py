@@ -76,6 +76,19 @@ class PointTable:
             self._keep(~gone)
         return int(gone.sum())
 
+    def forget_tombstones(self, cap: int) -> int:
+        """Keep at most `cap` tombstones, forgetting the oldest removals; returns how many
+        were forgotten. Trims to 90 % of the cap so that a table at its cap is not sorted
+        again for every further removal."""
+        if len(self.tombstones) <= cap:
+            return 0
+        keep = max(int(cap * 0.9), 1)
+        ids = np.fromiter(self.tombstones.keys(), np.int64, len(self.tombstones))
+        seqs = np.fromiter(self.tombstones.values(), np.int64, len(self.tombstones))
+        order = np.argsort(seqs, kind="stable")[len(ids) - keep:]
+        self.tombstones = dict(zip(ids[order].tolist(), seqs[order].tolist(), strict=True))
+        return len(ids) - keep
+
     def take(self, mask: np.ndarray) -> PointTable:
         """Remove the rows where `mask` is true and return them as a new table."""
         out = PointTable()

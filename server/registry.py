@@ -7,6 +7,13 @@ is ignored but still acknowledged, so an agent that resends after a lost `Ack` c
 Points and frames anchored to a keyframe that has not arrived yet wait in a bounded buffer
 until it does (messages of one agent may arrive out of order).
 
+Everything a peer keys or sizes is capped (the ``limits`` config section, unpacked by
+`registry_args`): agent ids, messages ahead of the acknowledged seq, waiting points and
+frames, removed ids per delta and tombstones in total, drop reasons counted. Content is
+checked against the server's own config, never against what the first agent sent: descriptor
+length, point feature width, decoder tensor names and shapes; and for plausibility: finite
+poses with |t| below a bound, keyframe ids increasing with seq, sample counts below a bound.
+
 Poses are kept in the agent's *own* world (its first camera): a keyframe reported after the
 agent applied a server alignment (``world_epoch`` > 0) is mapped back with the inverse of the
 alignment of that epoch, which the back end records with `Registry.set_alignment`.
@@ -15,22 +22,30 @@ alignment of that epoch, which the back end records with `Registry.set_alignment
 from __future__ import annotations
 
 import logging
-from collections import Counter
+import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
 
+from cpslam.common.bounds import CappedCounter, LogThrottle, tensor_mismatch
 from cpslam.common.field import NeuralPointMap
 from cpslam.common.geometry import compose, invert
 from cpslam.protocol import Ack, DecoderWeights, FramePoses, KeyframeMsg, Message, SubmapDelta
 from cpslam.server.points import PointTable
 
-__all__ = ["AgentRecord", "KeyframeRecord", "Registry"]
+if TYPE_CHECKING:
+    from cpslam.common.config import LimitsConfig
+
+__all__ = ["AgentRecord", "KeyframeRecord", "Registry", "registry_args"]
 
 logger = logging.getLogger(__name__)
 
 AGENT_MESSAGES = (KeyframeMsg, SubmapDelta, DecoderWeights, FramePoses)
+AGENT_DROP_REASONS = 32
+"""Distinct drop reasons counted per agent (the rest under "other")."""
 
 
 @dataclass
@@ -74,8 +89,10 @@ class AgentRecord:
     alive: bool = True
     messages: int = 0
     bytes: int = 0
-    dropped: Counter = field(default_factory=Counter)
+    dropped: CappedCounter = field(default_factory=lambda: CappedCounter(AGENT_DROP_REASONS))
     feature_dim: int | None = None
+    kf_seqs: dict[int, int] = field(default_factory=dict)
+    """Keyframe id -> seq of its message (this run only; checks that ids increase with seq)."""
 
     @property
     def kf_ids(self) -> list[int]:
@@ -126,6 +143,20 @@ class Registry:
         first_seq: the first ``seq`` agents send (their counter starts there).
         max_pending_points: most points an agent may have waiting for their keyframe; the
             oldest beyond it are dropped.
+        descriptor_dim: expected keyframe descriptor length (None: not checked).
+        max_agents: agent ids accepted; messages of further ids are dropped (None: no cap).
+        max_pending_frames: most frame poses an agent may have waiting for their keyframe;
+            the oldest beyond it are dropped.
+        max_seq_ahead: a message whose seq is this far beyond the acknowledged one is dropped
+            without an ack, so the set of out-of-order seqs stays bounded (None: no cap).
+        max_removed_per_message: a delta with more removed ids is refused whole, before any
+            table is touched (None: no cap).
+        max_tombstones: removals remembered per agent; the oldest beyond it are forgotten
+            (an older add of such a point arriving after that would bring it back).
+        max_translation_m: largest |t| (m) of a reported pose (None: only finiteness).
+        max_federated_samples: largest sample count a decoder submission may claim.
+        max_counter_keys: distinct drop reasons counted (the rest under "other").
+        now: monotonic clock of the throttled log lines.
     """
 
     def __init__(
@@ -134,17 +165,40 @@ class Registry:
         decoder_shapes: dict[str, tuple[int, ...]] | None = None,
         first_seq: int = 0,
         max_pending_points: int = 1_000_000,
+        *,
+        descriptor_dim: int | None = None,
+        max_agents: int | None = None,
+        max_pending_frames: int = 100_000,
+        max_seq_ahead: int | None = None,
+        max_removed_per_message: int | None = None,
+        max_tombstones: int | None = None,
+        max_translation_m: float | None = None,
+        max_federated_samples: int | None = None,
+        max_counter_keys: int = 1024,
+        now: Callable[[], float] = time.monotonic,
     ) -> None:
         self.feature_dim = int(feature_dim)
         self.decoder_shapes = decoder_shapes
         self.first_seq = int(first_seq)
         self.max_pending_points = int(max_pending_points)
+        self.descriptor_dim = descriptor_dim
+        self.max_agents = max_agents
+        self.max_pending_frames = int(max_pending_frames)
+        self.max_seq_ahead = max_seq_ahead
+        self.max_removed_per_message = max_removed_per_message
+        self.max_tombstones = max_tombstones
+        self.max_translation_m = max_translation_m
+        self.max_federated_samples = max_federated_samples
+        self.max_counter_keys = int(max_counter_keys)
         self.agents: dict[str, AgentRecord] = {}
         self.new_keyframes: list[tuple[str, int]] = []
         """(agent, kf) accepted since the back end last took them."""
         self.new_decoders: list[tuple[str, DecoderWeights]] = []
-        self.dropped: Counter = Counter()
+        self.dropped = CappedCounter(self.max_counter_keys)
         """Reason -> count of dropped messages (or parts), over all agents."""
+        self.refused_agents = 0
+        """Messages dropped because their agent id was beyond `max_agents`."""
+        self._log = LogThrottle(now=now)
 
     # ------------------------------------------------------------------------------- public
 
@@ -163,6 +217,16 @@ class Registry:
         if not isinstance(msg, AGENT_MESSAGES):
             self._drop(None, f"unexpected message type {type(msg).__name__}")
             return []
+        if (msg.agent_id not in self.agents and self.max_agents is not None
+                and len(self.agents) >= self.max_agents):
+            self.refused_agents += 1
+            self.dropped.add("agent cap reached")
+            held = self._log.allow("agent cap")
+            if held is not None:
+                logger.warning("dropped %s from new agent %s: already %d agents (limits."
+                               "max_agents); %d more refused since the last line", msg.type,
+                               msg.agent_id, len(self.agents), held)
+            return []
         rec = self.agent(msg.agent_id)
         rec.messages += 1
         rec.bytes += int(nbytes)
@@ -170,6 +234,11 @@ class Registry:
         seq = int(msg.seq)
         if seq <= rec.seq_floor or seq in rec.seqs_above:
             logger.debug("agent %s: seq %d already handled", rec.agent_id, seq)
+            return self._ack(rec)
+        if self.max_seq_ahead is not None and seq - rec.seq_floor > self.max_seq_ahead:
+            # Not acknowledged: a genuine agent resends it once the gap has closed.
+            self._drop(rec, "seq too far ahead", f"{msg.type} seq {seq} (acknowledged "
+                       f"{rec.seq_floor}, limits.max_seq_ahead {self.max_seq_ahead})")
             return self._ack(rec)
         reason = self._apply(rec, msg)
         if reason:
@@ -208,6 +277,9 @@ class Registry:
     # ---------------------------------------------------------------------------- appliers
 
     def _apply(self, rec: AgentRecord, msg: Message) -> str:
+        reason = self._implausible(rec, msg)
+        if reason:
+            return reason
         if isinstance(msg, KeyframeMsg):
             return self._keyframe(rec, msg)
         if isinstance(msg, SubmapDelta):
@@ -223,9 +295,10 @@ class Registry:
         align = rec.alignments.get(int(msg.world_epoch))
         if align is None:
             return f"world_epoch {msg.world_epoch} was never sent to this agent"
-        dims = {r.descriptor.shape[0] for r in self.all_keyframes()}
-        if dims and msg.descriptor.shape[0] not in dims:
-            return f"descriptor length {msg.descriptor.shape[0]}, others have {sorted(dims)}"
+        got = msg.descriptor.shape[0]
+        if self.descriptor_dim is not None and got != self.descriptor_dim:
+            return (f"field descriptor has length {got}, expected {self.descriptor_dim} "
+                    "(place_recognition / limits.descriptor_dim)")
         rec.keyframes[kf] = KeyframeRecord(
             kf_id=kf,
             frame_index=int(msg.frame_index),
@@ -234,6 +307,7 @@ class Registry:
             descriptor=np.asarray(msg.descriptor, np.float32),
             T_prev_kf_kf=None if msg.T_prev_kf_kf is None else msg.T_prev_kf_kf.copy(),
         )
+        rec.kf_seqs[kf] = int(msg.seq)
         self.new_keyframes.append((rec.agent_id, kf))
         self._resolve(rec)
         return ""
@@ -241,12 +315,21 @@ class Registry:
     def _submap(self, rec: AgentRecord, msg: SubmapDelta) -> str:
         f = msg.features.shape[1]
         if msg.point_ids.size and f != self.feature_dim:
-            return f"features have width {f}, the map uses {self.feature_dim}"
+            return f"field features has width {f}, expected {self.feature_dim} (field config)"
+        m = msg.removed_ids.size
+        if self.max_removed_per_message is not None and m > self.max_removed_per_message:
+            return (f"field removed_ids has {m} ids, expected at most "
+                    f"{self.max_removed_per_message} (limits.max_removed_per_message)")
         seq = int(msg.seq)
         # Removal and replacement touch both tables: a newer message supersedes a waiting one.
         for table in (rec.points, rec.pending_points):
             table.remove(msg.removed_ids, seq)
             table.remove(msg.point_ids, seq, tombstone=False)
+        if self.max_tombstones is not None:
+            forgotten = rec.points.forget_tombstones(self.max_tombstones)
+            forgotten += rec.pending_points.forget_tombstones(self.max_tombstones)
+            if forgotten:
+                self._drop(rec, "tombstones forgotten (limits.max_tombstones)", count=forgotten)
         known = np.isin(msg.anchor_kf_ids, np.fromiter(rec.keyframes, np.int64, len(rec.keyframes)))
         columns = (msg.point_ids, msg.anchor_kf_ids, msg.xyz_local, msg.features, msg.colors)
         rec.points.upsert(*(c[known] for c in columns), seq)
@@ -261,20 +344,24 @@ class Registry:
         for i, frame in enumerate(msg.frame_indices.tolist()):
             entry = (int(msg.kf_ids[i]), msg.T_kf_frame[i].copy(), float(msg.stamps[i]))
             target = rec.frames if entry[0] in rec.keyframes else rec.pending_frames
+            target.pop(int(frame), None)  # re-inserted last: the dict's order is arrival
             target[int(frame)] = entry
+        overflow = len(rec.pending_frames) - self.max_pending_frames
+        if overflow > 0:
+            for frame in list(rec.pending_frames)[:overflow]:
+                del rec.pending_frames[frame]
+            self._drop(rec, "too many frames waiting for keyframes", count=overflow)
         return ""
 
     def _decoder(self, rec: AgentRecord, msg: DecoderWeights) -> str:
         if self.decoder_shapes is not None:
-            names = set(msg.tensors)
-            if names != set(self.decoder_shapes):
-                missing = sorted(set(self.decoder_shapes) - names)[:3]
-                extra = sorted(names - set(self.decoder_shapes))[:3]
-                return f"decoder tensors differ (missing {missing}, unknown {extra})"
-            for name, value in msg.tensors.items():
-                if tuple(value.shape) != tuple(self.decoder_shapes[name]):
-                    return (f"decoder tensor {name} has shape {list(value.shape)}, expected "
-                            f"{list(self.decoder_shapes[name])}")
+            reason = tensor_mismatch(msg.tensors, self.decoder_shapes)
+            if reason:
+                return reason
+        n = int(msg.n_samples)
+        if self.max_federated_samples is not None and n > self.max_federated_samples:
+            return (f"field n_samples is {n}, expected at most {self.max_federated_samples} "
+                    "(limits.max_federated_samples)")
         rec.decoder = {k: np.asarray(v, np.float32) for k, v in msg.tensors.items()}
         rec.decoder_samples = int(msg.n_samples)
         rec.decoder_round = int(msg.round)
@@ -300,12 +387,40 @@ class Registry:
     def _ack(self, rec: AgentRecord) -> list[Ack]:
         return [Ack(agent_id=rec.agent_id, seq=rec.seq_floor)] if rec.seq_floor >= 0 else []
 
+    def _implausible(self, rec: AgentRecord, msg: Message) -> str:
+        """Why the message's poses or keyframe id cannot be right ("" if they can)."""
+        if isinstance(msg, KeyframeMsg):
+            poses = [("T_world_cam", msg.T_world_cam), ("T_prev_kf_kf", msg.T_prev_kf_kf)]
+        elif isinstance(msg, FramePoses):
+            poses = [("T_kf_frame", msg.T_kf_frame)]
+        else:
+            return ""
+        for name, T in poses:
+            if T is None or T.size == 0:
+                continue
+            if not np.isfinite(T).all():
+                return f"field {name} is not finite"
+            t_max = float(np.linalg.norm(T[..., :3, 3], axis=-1).max())
+            if self.max_translation_m is not None and t_max > self.max_translation_m:
+                return (f"field {name} has |t| {t_max:.6g} m, expected at most "
+                        f"{self.max_translation_m:g} m (limits.max_translation_m)")
+        if isinstance(msg, KeyframeMsg) and rec.kf_seqs:
+            kf, seq = int(msg.kf_id), int(msg.seq)
+            for other, other_seq in rec.kf_seqs.items():
+                if other != kf and (other_seq < seq) != (other < kf):
+                    return (f"field kf_id {kf} (seq {seq}) does not increase with seq: "
+                            f"keyframe {other} came with seq {other_seq}")
+        return ""
+
     def _drop(self, rec: AgentRecord | None, reason: str, what: str = "", count: int = 1) -> None:
-        self.dropped[reason] += count
+        self.dropped.add(reason, count)
         if rec is not None:
-            rec.dropped[reason] += count
-        logger.warning("dropped %s from %s: %s", what or "message",
-                       rec.agent_id if rec else "?", reason)
+            rec.dropped.add(reason, count)
+        agent = rec.agent_id if rec else "?"
+        held = self._log.allow(f"drop {agent}")
+        if held is not None:
+            logger.warning("dropped %s from %s: %s%s", what or "message", agent, reason,
+                           f" ({held} more drops of this agent not logged)" if held else "")
 
     # ----------------------------------------------------------------------------- state
 
@@ -360,11 +475,32 @@ class Registry:
             rec.seq_floor, rec.seqs_above = int(a["seq_floor"]), set(a["seqs_above"])
             rec.alive, rec.messages, rec.bytes = bool(a["alive"]), int(a["messages"]), int(
                 a["bytes"])
-            rec.dropped = Counter(a["dropped"])
+            rec.dropped = CappedCounter(AGENT_DROP_REASONS)
+            for reason, count in a["dropped"].items():
+                rec.dropped.add(reason, count)
             self.agents[rec.agent_id] = rec
-        self.dropped = Counter(state["dropped"])
+        self.dropped = CappedCounter(self.max_counter_keys)
+        for reason, count in state["dropped"].items():
+            self.dropped.add(reason, count)
         self.new_keyframes = [(str(a), int(k)) for a, k in state["new_keyframes"]]
         self.new_decoders = []
+
+
+def registry_args(limits: LimitsConfig, descriptor_dim: int) -> dict[str, Any]:
+    """`Registry`'s keyword arguments from the ``limits`` section (`descriptor_dim`: the
+    length the place_recognition section gives, unless the section overrides it)."""
+    return dict(
+        descriptor_dim=limits.descriptor_dim or descriptor_dim,
+        max_agents=limits.max_agents,
+        max_pending_points=limits.max_pending_points,
+        max_pending_frames=limits.max_pending_frames,
+        max_seq_ahead=limits.max_seq_ahead,
+        max_removed_per_message=limits.max_removed_per_message,
+        max_tombstones=limits.max_tombstones,
+        max_translation_m=limits.max_translation_m,
+        max_federated_samples=limits.max_federated_samples,
+        max_counter_keys=limits.max_counter_keys,
+    )
 
 
 def _t(a: np.ndarray) -> torch.Tensor:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
 
+from cpslam.common.bounds import OTHER
 from cpslam.protocol import keys
 
 __all__ = ["DecoderFanout", "KeyCounter", "traffic_per_agent", "traffic_per_group"]
@@ -20,12 +21,20 @@ Table = dict[str, dict[str, int]]
 
 
 class KeyCounter:
-    """Messages and bytes per key (one thread counts; `table` returns a copy)."""
+    """Messages and bytes per key (one thread counts; `table` returns a copy).
 
-    def __init__(self) -> None:
+    Keys come from peers: at most `max_keys` are kept, the rest count under "other" (which
+    no agent or group key parses as, so per-agent figures skip it).
+    """
+
+    def __init__(self, max_keys: int | None = None) -> None:
         self._rows: dict[str, list[int]] = {}
+        self.max_keys = max_keys
 
     def add(self, key: str, nbytes: int) -> None:
+        if key not in self._rows and self.max_keys is not None and (
+                len(self._rows) >= self.max_keys):
+            key = OTHER
         row = self._rows.setdefault(key, [0, 0])
         row[0] += 1
         row[1] += int(nbytes)

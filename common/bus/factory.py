@@ -16,7 +16,7 @@ from cpslam.common.bus.zenoh_bus import ZenohBus
 from cpslam.common.bus.zenoh_security import ZenohSecurity
 
 if TYPE_CHECKING:
-    from cpslam.common.config import TransportConfig
+    from cpslam.common.config import LimitsConfig, TransportConfig
 
 Role = Literal["server", "agent"]
 
@@ -38,16 +38,24 @@ _ROLE_DEFAULTS: dict[str, dict[str, object]] = {
 
 
 def bus_from_config(
-    transport: TransportConfig, role: Role, network: InMemoryNetwork | None = None
+    transport: TransportConfig, role: Role, network: InMemoryNetwork | None = None,
+    limits: LimitsConfig | None = None,
 ) -> Bus:
     """A `ZenohBus` (or an `InMemoryBus` on `network` for backend "memory") for `role`.
 
     Unset mode/listen/connect take the role's defaults: the server is a router listening on
     tcp/0.0.0.0:7447, an agent a client connecting to tcp/127.0.0.1:7447. `listen` is ignored
     in client mode; a server with `connect` set also reaches an existing Zenoh router.
-    ``max_message_mb`` bounds the payloads of either bus; ``queue_size`` is the nodes' to use
-    when they subscribe, ``session`` their key prefix.
+    ``max_message_mb`` bounds the payloads of either bus (and Zenoh's receive limit);
+    ``queue_size`` is the nodes' to use when they subscribe, ``session`` their key prefix.
+    `limits` (the ``limits`` section; None: its defaults) bounds each subscription queue in
+    bytes (``queue_mb``), the bus's counters (``max_counter_keys``) and, for the listening
+    server, the Zenoh sessions admitted (``zenoh_max_sessions``).
     """
+    from cpslam.common.config.limits import LimitsConfig
+
+    limits = limits if limits is not None else LimitsConfig()
+    queue_bytes = int(limits.queue_mb * 2**20)
     if role not in _ROLE_DEFAULTS:
         raise ValueError(f"bus_from_config: role must be 'server' or 'agent', got {role!r}")
     max_payload = int(transport.max_message_mb * 2**20)
@@ -55,7 +63,8 @@ def bus_from_config(
         if network is None:
             raise ValueError("transport.backend 'memory' needs the InMemoryNetwork shared by "
                              "every bus of the process")
-        return InMemoryBus(network, max_payload_bytes=max_payload)
+        return InMemoryBus(network, max_payload_bytes=max_payload, max_queue_bytes=queue_bytes,
+                           max_counter_keys=limits.max_counter_keys)
     defaults = _ROLE_DEFAULTS[role]
     mode = transport.mode or defaults["mode"]
     # A client never listens, so one config file with `listen` set serves both daemons.
@@ -71,14 +80,19 @@ def bus_from_config(
         open_timeout_s=transport.open_timeout_s,
         max_payload_bytes=max_payload,
         security=ZenohSecurity.from_transport(transport),
+        max_queue_bytes=queue_bytes,
+        max_sessions=limits.zenoh_max_sessions if role == "server" else None,
+        max_counter_keys=limits.max_counter_keys,
     )
 
 
 def open_client(transport: TransportConfig, wait_timeout_s: float, what: str = "agent",
-                stop: threading.Event | None = None) -> Bus | None:
+                stop: threading.Event | None = None,
+                limits: LimitsConfig | None = None) -> Bus | None:
     """A client bus to the configured endpoints, retried until `wait_timeout_s`; None if the
     server could not be reached, or at once when `stop` is set (the caller tells which).
-    `what` names the caller in the log lines ("agent 0", "client")."""
+    `what` names the caller in the log lines ("agent 0", "client"); `limits` as in
+    `bus_from_config`."""
     t0 = time.monotonic()
     deadline = t0 + wait_timeout_s
     endpoints = ", ".join(transport.connect) or f"tcp/127.0.0.1:{DEFAULT_PORT}"
@@ -93,7 +107,7 @@ def open_client(transport: TransportConfig, wait_timeout_s: float, what: str = "
             announced = True
 
     while not stop.is_set():
-        attempt = _OpenAttempt(transport)
+        attempt = _OpenAttempt(transport, limits)
         while not attempt.done.wait(STOP_CHECK_S):
             if stop.is_set():
                 attempt.abandon()
@@ -117,19 +131,19 @@ class _OpenAttempt:
     """One `bus_from_config` on its own thread: opening a client session blocks for up to
     ``transport.open_timeout_s``, and a stop request must not wait for that."""
 
-    def __init__(self, transport: TransportConfig) -> None:
+    def __init__(self, transport: TransportConfig, limits: LimitsConfig | None = None) -> None:
         self.done = threading.Event()
         self.bus: Bus | None = None
         self.error: Exception | None = None
         self._lock = threading.Lock()
         self._abandoned = False
-        threading.Thread(target=self._run, args=(transport,), name="bus-open",
+        threading.Thread(target=self._run, args=(transport, limits), name="bus-open",
                          daemon=True).start()
 
-    def _run(self, transport: TransportConfig) -> None:
+    def _run(self, transport: TransportConfig, limits: LimitsConfig | None) -> None:
         bus = None
         try:
-            bus = bus_from_config(transport, "agent")
+            bus = bus_from_config(transport, "agent", limits=limits)
         except Exception as err:  # noqa: BLE001 - handed to the waiting thread
             self.error = err
         with self._lock:

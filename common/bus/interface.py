@@ -21,6 +21,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from cpslam.common.bounds import CappedCounter
 from cpslam.common.bus.keyexpr import reply_key, validate_key, validate_key_expr
 from cpslam.common.bus.liveliness import LivelinessToken, LivelinessWatcher, MemberCallback
 from cpslam.common.bus.subscription import Sample, Subscription
@@ -131,16 +132,22 @@ class Bus(ABC):
             own close and busy subscription callbacks share the one deadline).
         max_payload_bytes: larger payloads are refused by `publish` (`ValueError`) and
             dropped on receive (counted in `stats()["oversized"]`, logged); None: no limit.
+        max_queue_bytes: payload bytes each subscription queue may hold besides its sample
+            count (`Subscription`); None: no byte limit.
+        max_counter_keys: distinct keys the oversized-message counter keeps (the rest count
+            as "other"), so a peer inventing keys cannot grow it.
     """
 
     def __init__(self, close_timeout_s: float = 5.0,
-                 max_payload_bytes: int | None = None) -> None:
+                 max_payload_bytes: int | None = None, max_queue_bytes: int | None = None,
+                 max_counter_keys: int = 1024) -> None:
         if close_timeout_s <= 0:
             raise ValueError(f"close_timeout_s must be > 0, got {close_timeout_s}")
         if max_payload_bytes is not None and max_payload_bytes <= 0:
             raise ValueError(f"max_payload_bytes must be > 0, got {max_payload_bytes}")
         self.close_timeout_s = float(close_timeout_s)
         self.max_payload_bytes = max_payload_bytes
+        self.max_queue_bytes = max_queue_bytes
         self._lock = threading.RLock()
         self._closing = False
         self._traffic = _Traffic()
@@ -150,7 +157,7 @@ class Bus(ABC):
         self._watchers: set[LivelinessWatcher] = set()
         self._sub_undeclare: dict[Subscription, Callable[[], None]] = {}
         self._dropped_by_closed: dict[str, int] = {}
-        self._dropped_oversized: dict[str, int] = {}
+        self._dropped_oversized = CappedCounter(max_counter_keys)
 
     # -- public interface ----------------------------------------------------------------
 
@@ -179,7 +186,8 @@ class Bus(ABC):
         validate_key_expr(key_expr, "subscription key expression")
         with self._lock:
             self._check_open("subscribe")
-            sub = Subscription(key_expr, queue_size, callback, on_close=self._forget_subscription)
+            sub = Subscription(key_expr, queue_size, callback, on_close=self._forget_subscription,
+                               max_bytes=self.max_queue_bytes)
             undeclare = self._transport_subscribe(key_expr, self._make_receiver(sub))
             self._subscriptions.add(sub)
             self._sub_undeclare[sub] = self._guard(undeclare, f"subscription on {key_expr!r}")
@@ -391,7 +399,8 @@ class Bus(ABC):
 
     def _oversized(self, key: str, nbytes: int) -> None:
         with self._lock:
-            count = self._dropped_oversized[key] = self._dropped_oversized.get(key, 0) + 1
+            counted = self._dropped_oversized.add(key)
+            count = self._dropped_oversized[counted]
         if count == 1 or count % 100 == 0:  # a flood must not become a flood of logs
             logger.warning("dropped a %d-byte message on %r: over the bus limit of %d bytes "
                            "(%d so far)", nbytes, key, self.max_payload_bytes, count)

@@ -168,8 +168,9 @@ class InMemoryBus(Bus):
     arguments are `Bus`'s."""
 
     def __init__(self, network: InMemoryNetwork | None = None, close_timeout_s: float = 5.0,
-                 max_payload_bytes: int | None = None) -> None:
-        super().__init__(close_timeout_s, max_payload_bytes)
+                 max_payload_bytes: int | None = None, max_queue_bytes: int | None = None,
+                 max_counter_keys: int = 1024) -> None:
+        super().__init__(close_timeout_s, max_payload_bytes, max_queue_bytes, max_counter_keys)
         self.network = network if network is not None else InMemoryNetwork()
         self._session = self.network.attach()
 

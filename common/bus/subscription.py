@@ -2,7 +2,8 @@
 
 A bus's network thread only ever *offers* a sample to a subscription: the offer appends to a
 bounded deque and returns at once, so a slow consumer can never stall the transport or the
-publisher. When the deque is full the **oldest** sample is dropped (the consumer sees the most
+publisher. The deque is bounded in samples (``queue_size``) and in payload bytes
+(``max_bytes``). When it is full the **oldest** sample is dropped (the consumer sees the most
 recent data, as Zenoh's RingChannel does), the drop is counted on the subscription and logged
 at most once every few seconds.
 """
@@ -40,6 +41,9 @@ class Sample:
 class Subscription:
     """Samples matching one key expression, buffered in a bounded drop-oldest queue.
 
+    The queue holds at most `queue_size` samples and, when `max_bytes` is set, at most that
+    many payload bytes (the newest sample is always kept, even alone over the budget).
+
     Without a callback the owner pulls with `get()` or iterates; with a callback a worker
     thread owned by the subscription calls it for each sample (exceptions are logged, never
     propagated), and `get()` is not available. Iteration ends when the subscription closes.
@@ -51,11 +55,16 @@ class Subscription:
         queue_size: int = 64,
         callback: Callable[[Sample], object] | None = None,
         on_close: Callable[[Subscription], None] | None = None,
+        max_bytes: int | None = None,
     ) -> None:
         if queue_size < 1:
             raise ValueError(f"queue_size must be >= 1, got {queue_size}")
+        if max_bytes is not None and max_bytes < 1:
+            raise ValueError(f"max_bytes must be >= 1, got {max_bytes}")
         self.key_expr = key_expr
         self.queue_size = queue_size
+        self.max_bytes = max_bytes
+        self._bytes = 0
         self._queue: deque[Sample] = deque()
         self._cond = threading.Condition()
         self._closed = False
@@ -129,8 +138,10 @@ class Subscription:
             if self._closed:
                 return
             self._delivered += 1
-            if len(self._queue) >= self.queue_size:
-                self._queue.popleft()
+            self._queue.append(sample)
+            self._bytes += len(sample.payload)
+            while len(self._queue) > 1 and self._over():
+                self._bytes -= len(self._queue.popleft().payload)
                 self._dropped += 1
                 self._drops_unlogged += 1
                 now = time.monotonic()
@@ -138,17 +149,29 @@ class Subscription:
                     log_now, self._drops_unlogged = self._drops_unlogged, 0
                     self._last_drop_log = now
                     total = self._dropped
-            self._queue.append(sample)
             self._cond.notify()
         if log_now:
             logger.warning(
                 "subscriber on %r is too slow: dropped %d oldest sample(s) (queue_size=%d, "
-                "%d dropped in total)",
+                "max_bytes=%s, %d dropped in total)",
                 self.key_expr,
                 log_now,
                 self.queue_size,
+                self.max_bytes,
                 total,
             )
+
+    @property
+    def queued_bytes(self) -> int:
+        """Payload bytes waiting in the queue."""
+        with self._cond:
+            return self._bytes
+
+    def _over(self) -> bool:
+        # Called with the condition held.
+        if len(self._queue) > self.queue_size:
+            return True
+        return self.max_bytes is not None and self._bytes > self.max_bytes
 
     def close(self, timeout: float = 5.0) -> None:
         """Stop receiving and discard what is still queued; wakes waiting consumers.
@@ -162,6 +185,7 @@ class Subscription:
                 return
             self._closed = True
             self._queue.clear()
+            self._bytes = 0
             self._cond.notify_all()
         if self._on_close is not None:
             self._on_close(self)
@@ -199,7 +223,9 @@ class Subscription:
                     if remaining <= 0:
                         return None
                     self._cond.wait(remaining)
-            return self._queue.popleft()
+            sample = self._queue.popleft()
+            self._bytes -= len(sample.payload)
+            return sample
 
     def _run_callback(self) -> None:
         assert self._callback is not None

@@ -30,6 +30,8 @@ MODES = ("peer", "client", "router")
 # Declared publishers are cached per key (cheaper puts); beyond this many keys fall back to
 # session.put so an unbounded key space (e.g. per-keyframe keys) cannot grow the cache forever.
 _MAX_CACHED_PUBLISHERS = 256
+# Zenoh's own framing around a payload (key expression, attachments, headers).
+_RX_HEADROOM = 64 * 1024
 # Marks error replies sent by a cpslam queryable (handler raised), as opposed to the errors
 # Zenoh itself reports to a querier.
 _ERROR_ENCODING = zenoh.Encoding.TEXT_PLAIN.with_schema("cpslam-error")
@@ -44,6 +46,8 @@ def zenoh_config(
     multicast_scouting: bool = False,
     open_timeout_s: float = 5.0,
     security: ZenohSecurity | None = None,
+    max_payload_bytes: int | None = None,
+    max_sessions: int | None = None,
 ) -> zenoh.Config:
     """The zenoh.Config for these settings (arguments as in `ZenohBus`)."""
     if mode not in MODES:
@@ -65,6 +69,12 @@ def zenoh_config(
         "transport/shared_memory/enabled": shared_memory,
         "transport/link/tx/lease": int(lease_s * 1000),
     }
+    if max_payload_bytes is not None:
+        # Zenoh reassembles a fragmented message up to this size (default 1 GiB) before any
+        # of our checks see it: a peer's huge message is refused by the transport itself.
+        settings["transport/link/rx/max_message_size"] = int(max_payload_bytes) + _RX_HEADROOM
+    if max_sessions is not None:
+        settings["transport/unicast/max_sessions"] = int(max_sessions)
     if not multicast_scouting:
         # The default 500 ms scouting delay only waits for multicast answers that cannot come.
         settings["scouting/delay"] = 0
@@ -114,7 +124,11 @@ class ZenohBus(Bus):
         close_timeout_s: `close()` returns within this long: Zenoh's own close (which can
             wait on a vanished peer) and busy subscription callbacks share the deadline.
         max_payload_bytes: larger payloads are refused on publish and dropped on receive
-            (see `Bus`); None: no limit.
+            (see `Bus`), and Zenoh's receive limit (``transport/link/rx/max_message_size``)
+            follows it; None: no limit.
+        max_queue_bytes: payload bytes each subscription queue may hold (see `Bus`).
+        max_sessions: Zenoh sessions a listening session admits at once
+            (``transport/unicast/max_sessions``); None: Zenoh's default (1000).
         security: TLS / mutual TLS, user-password authentication, access control and a base
             Zenoh config file (`ZenohSecurity`); None: plain Zenoh.
     """
@@ -132,11 +146,14 @@ class ZenohBus(Bus):
         close_timeout_s: float = 2.0,
         max_payload_bytes: int | None = None,
         security: ZenohSecurity | None = None,
+        max_queue_bytes: int | None = None,
+        max_sessions: int | None = None,
+        max_counter_keys: int = 1024,
     ) -> None:
-        super().__init__(close_timeout_s, max_payload_bytes)
+        super().__init__(close_timeout_s, max_payload_bytes, max_queue_bytes, max_counter_keys)
         config = zenoh_config(
             mode, listen, connect, shared_memory, lease_s, multicast_scouting, open_timeout_s,
-            security,
+            security, max_payload_bytes, max_sessions,
         )
         self.mode = mode
         self.listen = list(listen)

@@ -16,6 +16,7 @@ from cpslam.common.config.collab import (
     PoseGraphConfig,
     RefinementConfig,
 )
+from cpslam.common.config.limits import LimitsConfig
 from cpslam.common.config.runtime import RunConfig, TransportConfig
 from cpslam.common.config.slam import (
     CameraConfig,
@@ -32,6 +33,7 @@ __all__ = [
     "FederationConfig",
     "FieldConfig",
     "KeyframesConfig",
+    "LimitsConfig",
     "LoopConfig",
     "MappingConfig",
     "PlaceRecognitionConfig",
@@ -71,5 +73,7 @@ class CpslamConfig(Section):
     """Map refinement after a pose-graph correction."""
     transport: TransportConfig = TransportConfig()
     """The message bus between agents and server."""
+    limits: LimitsConfig = LimitsConfig()
+    """Caps on peer-keyed state and plausibility bounds of agents' messages."""
     run: RunConfig = RunConfig()
     """Process-level settings: output, device, seeds, logging."""

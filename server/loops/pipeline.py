@@ -48,7 +48,8 @@ class LoopPipeline:
 
     Args:
         loop: the config section (candidates per query, thresholds, coarse method, tries).
-        fetch_image: ``(agent_id, kf_id) -> KeyframeImage | None``; images are cached (64).
+        fetch_image: ``(agent_id, kf_id) -> KeyframeImage | None``; images are cached (64,
+            and at most `image_cache_bytes` of decoded pixels; the oldest go first).
         now: monotonic clock (s); t_start: its value that record stamps count from.
         refine_pose: optional ``(candidate, T_a_b_init, image_a, image_b) -> Registration |
             None`` refining a coarse loop pose (a `PoseRefiner`); None uses the coarse one.
@@ -58,6 +59,8 @@ class LoopPipeline:
         seed: of the registration's RANSAC.
         retry_after_s: a candidate whose keyframe images could not be pulled is tried again
             this many seconds later (``loop.max_attempts`` tries in all).
+        image_cache_bytes: bytes of images the cache holds (``limits.image_cache_mb``);
+            None: only the count bounds it.
     """
 
     def __init__(
@@ -71,6 +74,7 @@ class LoopPipeline:
         register: Callable[[KeyframeImage, KeyframeImage], Any] | None = None,
         seed: int = 0,
         retry_after_s: float = 5.0,
+        image_cache_bytes: int | None = None,
     ) -> None:
         self.loop_cfg, self.fetch_image = loop, fetch_image
         self.now, self.t_start = now, t_start
@@ -78,6 +82,8 @@ class LoopPipeline:
         self.database = database if database is not None else DescriptorDatabase.from_config(loop)
         self.register = register or coarse_register(loop, seed)
         self.retry_after_s = retry_after_s
+        self.image_cache_bytes = image_cache_bytes
+        self._image_bytes = 0
         self.book = LoopBook(max_attempts=loop.max_attempts)
         self.records: list[LoopRecord] = []
         self.queue: list[Candidate] = []  # selected by the book, waiting for verification
@@ -136,7 +142,7 @@ class LoopPipeline:
             if self.book.status(cand) == "failed":
                 for key in ((cand.agent_a, int(cand.kf_a)), (cand.agent_b, int(cand.kf_b))):
                     if key in self._images and self._images[key] is None:
-                        del self._images[key]  # fetch it again at the next try
+                        del self._images[key]  # fetch it again at the next try (0 bytes)
                 self.retry.append((self.now() + self.retry_after_s, cand))
                 logger.info("loop %s/%d - %s/%d: keyframe image unavailable (try %d of %d), "
                             "retried in %.0f s", cand.agent_a, cand.kf_a, cand.agent_b,
@@ -173,12 +179,18 @@ class LoopPipeline:
         key = (agent, int(kf))
         if key not in self._images:
             try:
-                self._images[key] = self.fetch_image(agent, int(kf))
+                image = self.fetch_image(agent, int(kf))
             except Exception:  # noqa: BLE001 - an unreachable agent is a missing image
                 logger.exception("fetching keyframe image %s/%d failed", agent, kf)
-                self._images[key] = None
-            while len(self._images) > 64:
-                self._images.popitem(last=False)
+                image = None
+            self._images[key] = image
+            self._image_bytes += _image_nbytes(image)
+            budget = self.image_cache_bytes
+            # The newest stays even alone over the budget: the caller is about to use it.
+            while len(self._images) > 1 and (len(self._images) > 64 or (
+                    budget is not None and self._image_bytes > budget)):
+                self._image_bytes -= _image_nbytes(self._images.popitem(last=False)[1])
+            return image
         return self._images[key]
 
     def status(self) -> dict:
@@ -223,3 +235,10 @@ class LoopPipeline:
 def _pair(c: Candidate) -> tuple[str, int, str, int]:
     a, b = (c.agent_a, int(c.kf_a)), (c.agent_b, int(c.kf_b))
     return (*min(a, b), *max(a, b))
+
+
+def _image_nbytes(image: KeyframeImage | None) -> int:
+    """Bytes of a cached image's decoded pixels (0 for a miss)."""
+    if image is None:
+        return 0
+    return sum(a.nbytes for a in (image.rgb, image.depth) if a is not None)

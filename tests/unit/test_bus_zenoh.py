@@ -93,3 +93,12 @@ def test_listening_on_a_taken_port_is_a_clear_error() -> None:
     with ZenohBus(mode="router", listen=[endpoint]):
         with pytest.raises(BusError, match=endpoint.split("/")[1]):
             ZenohBus(mode="router", listen=[endpoint])
+
+
+def test_the_server_session_admits_at_most_max_sessions() -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    with ZenohBus(mode="router", listen=[endpoint], max_sessions=1), ZenohBus(
+        mode="client", connect=[endpoint], open_timeout_s=2.0
+    ):
+        with pytest.raises(BusError, match="could not open"):
+            ZenohBus(mode="client", connect=[endpoint], open_timeout_s=1.0)

@@ -291,3 +291,37 @@ def test_shared_decoder_is_fitted_to_the_map_before_the_next_frame_is_tracked() 
         # own robust scale, which hides how well the map explains the frame.
         losses[refit] = result.track_residual_m
     assert losses[True] < 0.5 * losses[False], losses
+
+
+def test_a_wrong_shaped_group_decoder_is_dropped_and_the_agent_goes_on(caplog) -> None:
+    link = _link()
+    _run(link, 0, 1)
+    dec = link.odometry.decoders
+    before = {k: v.clone() for k, v in dec.state_dict().items()}
+    name = next(iter(before))
+    wrong = {k: np.zeros(tuple(v.shape), np.float32) for k, v in before.items()}
+    wrong[name] = np.zeros((3, 1), np.float32)  # a server on another preset
+    msg = GroupDecoder(group_id="a0", round=1, members=["a0"], n_samples=1, tensors=wrong)
+    with caplog.at_level("WARNING", logger="cpslam.agent.link"):
+        assert not link.apply_decoder(msg)
+    assert link.round == 0
+    assert f"tensors['{name}'] has shape [3, 1], expected" in caplog.text
+    for k, v in dec.state_dict().items():
+        assert torch.equal(v, before[k])
+    missing = {k: v for k, v in wrong.items() if k != name}
+    assert not link.apply_decoder(GroupDecoder(group_id="a0", round=1, members=["a0"],
+                                               n_samples=1, tensors=missing))
+    assert "names differ" in caplog.text
+    _run(link, 1, 2)  # the agent still tracks
+
+
+def test_decoders_held_for_other_groups_are_capped() -> None:
+    from cpslam.agent.link import MAX_WAITING_DECODERS
+
+    link = _link()
+    tensors = {k: v.detach().numpy() for k, v in link.odometry.decoders.state_dict().items()}
+    for g in range(MAX_WAITING_DECODERS + 10):
+        link.apply_decoder(GroupDecoder(group_id=f"g{g}", round=1, members=["b"], n_samples=1,
+                                        tensors=tensors))
+    assert len(link._decoders_waiting) == MAX_WAITING_DECODERS
+    assert f"g{MAX_WAITING_DECODERS + 9}" in link._decoders_waiting  # the newest kept

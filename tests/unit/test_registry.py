@@ -40,8 +40,8 @@ def test_replayed_seq_is_ignored_and_acked():
 def test_out_of_order_seqs_ack_the_contiguous_prefix():
     reg = Registry(F)
     assert reg.handle(delta(2, [0], 0)) == []  # nothing contiguous from 0 yet
-    assert reg.handle(keyframe(1, 0)) == []
-    assert reg.handle(keyframe(0, 1)) == [Ack(agent_id="a", seq=2)]
+    assert reg.handle(keyframe(1, 1)) == []
+    assert reg.handle(keyframe(0, 0)) == [Ack(agent_id="a", seq=2)]
 
 
 def test_unknown_anchor_waits_for_its_keyframe():

@@ -13,16 +13,19 @@ from cpslam import protocol
 from cpslam.common.bus import InMemoryBus, InMemoryNetwork
 from cpslam.common.bus.subscription import Sample, Subscription
 from cpslam.common.config import load_config
+from cpslam.common.place_recognition import descriptor_dim
 from cpslam.protocol import Ack, GroupDecoder, KeyframeMsg, keys
 from cpslam.server.backend import Outgoing
 from cpslam.server.node import ServerNode
 from cpslam.server.traffic import traffic_per_agent, traffic_per_group
 
 SESSION = "default"
+# The server checks descriptors against the length its own config gives.
+DESCRIPTOR_DIM = descriptor_dim(load_config("tiny", env={}).place_recognition)
 
 
 def _keyframe(agent: str, seq: int, kf: int) -> KeyframeMsg:
-    d = np.random.default_rng(kf).standard_normal(64).astype(np.float32)
+    d = np.random.default_rng(kf).standard_normal(DESCRIPTOR_DIM).astype(np.float32)
     return KeyframeMsg(agent_id=agent, seq=seq, kf_id=kf, frame_index=kf * 5, stamp=kf / 6.0,
                        world_epoch=0, T_world_cam=np.eye(4), T_prev_kf_kf=np.eye(4),
                        descriptor=d / np.linalg.norm(d), n_points=0)
