@@ -6,7 +6,10 @@
 2. Wait until the server's liveliness token is seen (logged likewise when it takes longer
    than a second). A stop request (SIGINT/SIGTERM) ends either wait within a fraction of a
    second.
-3. For every frame: apply what the server pushed, track and map, publish.
+3. For every frame: apply what the server pushed, resend what is unacknowledged
+   ``transport.resend_after_s`` after it was sent, track and map, publish. While the outbox
+   is full (``transport.outbox_messages`` / ``outbox_mb``) no frame is taken until acks make
+   room (logged once per stall): accepted data is never dropped.
 4. When the server's token comes back after it left (restart, network loss), resend every
    message it has not acknowledged (the outbox); the server drops what it already had.
 5. At the end: send the last frame poses and wait until everything is acknowledged, then
@@ -14,7 +17,9 @@
 
 Exit codes (`cpslam.common.cli.ExitCode`): 0 done and acknowledged, 3 no server within
 ``wait_timeout_s``, 4 the server did not acknowledge everything within ``ack_timeout_s``
-(outputs are written all the same), 130 interrupted (outputs written once streaming has begun).
+(outputs are written all the same), 5 the server refused this incarnation (the agent id
+already streams into the session as another incarnation: restart with a new id), 130
+interrupted (outputs written once streaming has begun).
 """
 
 from __future__ import annotations
@@ -118,6 +123,7 @@ def run_networked(cfg: CpslamConfig, seq: RGBDSequence, agent_id: str, run_dir: 
         torch.manual_seed(cfg.run.seed)
         joins_seen = presence.joins
         interrupted = False
+        acked = False
         try:
             with make_progress(disable=not show_progress) as bar:
                 task = bar.add_task(f"agent {agent_id}", total=len(seq), info="")
@@ -128,6 +134,12 @@ def run_networked(cfg: CpslamConfig, seq: RGBDSequence, agent_id: str, run_dir: 
                         break
                     joins_seen = _resend_after_rejoin(node, presence, joins_seen)
                     node.poll()
+                    if presence.up:
+                        node.resend_due()
+                    joins_seen = _wait_for_room(node, presence, joins_seen, stop)
+                    if node.refused is not None or stop.is_set():
+                        interrupted = node.refused is None
+                        break
                     result = node.step(frame)
                     if on_frame is not None:
                         on_frame(frame, result, node.odometry)
@@ -135,14 +147,18 @@ def run_networked(cfg: CpslamConfig, seq: RGBDSequence, agent_id: str, run_dir: 
                     away = "" if presence.up else "  (server away)"
                     bar.update(task, advance=1, info=f"{fps:.2f} fps  loss "
                                f"{result.track_loss:.4f}  outbox {len(node.link.outbox)}{away}")
-            node.flush()
-            acked = _wait_acked(node, presence, joins_seen, ack_timeout_s, stop)
+            if node.refused is None and not interrupted:
+                node.flush()
+                acked = _wait_acked(node, presence, joins_seen, ack_timeout_s, stop)
         finally:
             node.write_outputs(extra={"bus": bus.stats(),
                                       "unacknowledged": len(node.link.outbox),
                                       "server_rejoins": max(presence.joins - 1, 0)})
             node.close()
             presence.close()
+    if node.refused is not None:
+        logger.error("agent %s: refused by the server (%s)", agent_id, node.refused)
+        return ExitCode.REFUSED
     if interrupted or stop.is_set():
         return ExitCode.INTERRUPTED
     if not acked:
@@ -162,18 +178,37 @@ def _resend_after_rejoin(node: AgentNode, presence: ServerPresence, joins_seen: 
     return joins_seen
 
 
-def _wait_acked(node: AgentNode, presence: ServerPresence, joins_seen: int, timeout_s: float,
-                stop: threading.Event, resend_every_s: float = 5.0) -> bool:
-    """Until the outbox is empty: apply what arrives, resend after a server rejoin and,
-    in case an ack was lost, every `resend_every_s`."""
-    link = node.link
-    deadline = time.monotonic() + timeout_s
-    next_resend = time.monotonic() + resend_every_s
-    while link.outbox and time.monotonic() < deadline and not stop.is_set():
+def _wait_for_room(node: AgentNode, presence: ServerPresence, joins_seen: int,
+                   stop: threading.Event) -> int:
+    """While the outbox is full: apply what arrives, resend what is due; returns joins seen."""
+    outbox = node.link.outbox
+    if not outbox.full():
+        return joins_seen
+    logger.warning("agent %s: outbox full (%d messages, %.1f MiB unacknowledged); waiting for "
+                   "acks before the next frame", node.agent_id, len(outbox), outbox.bytes / 2**20)
+    t0 = time.monotonic()
+    while outbox.full() and node.refused is None and not stop.is_set():
         joins_seen = _resend_after_rejoin(node, presence, joins_seen)
         if not node.poll():
             node.wait_for_server_message(0.1)
-        if time.monotonic() >= next_resend and link.outbox and presence.up:
-            node.resend()
-            next_resend = time.monotonic() + resend_every_s
+        if presence.up:
+            node.resend_due()
+    logger.info("agent %s: outbox has room again after %.1f s", node.agent_id,
+                time.monotonic() - t0)
+    return joins_seen
+
+
+def _wait_acked(node: AgentNode, presence: ServerPresence, joins_seen: int, timeout_s: float,
+                stop: threading.Event) -> bool:
+    """Until the outbox is empty: apply what arrives, resend after a server rejoin and what
+    is unacknowledged ``transport.resend_after_s`` after it was sent (a lost ack)."""
+    link = node.link
+    deadline = time.monotonic() + timeout_s
+    while (link.outbox and time.monotonic() < deadline and not stop.is_set()
+           and node.refused is None):
+        joins_seen = _resend_after_rejoin(node, presence, joins_seen)
+        if not node.poll():
+            node.wait_for_server_message(0.1)
+        if link.outbox and presence.up:
+            node.resend_due()
     return not link.outbox

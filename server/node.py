@@ -33,8 +33,10 @@ from cpslam.protocol import (
     KeyframeImage,
     KeyframeImageRequest,
     ProtocolError,
+    Refusal,
     ServerUpdate,
     Status,
+    UpdateAck,
     keys,
 )
 from cpslam.server.backend import Backend, Outgoing
@@ -151,7 +153,7 @@ class ServerNode:
             if msg is not None:
                 logger.info("control: %s (%s)", msg.action, msg.reason)
                 self.control = msg
-        batch = []
+        batch, update_acks = [], []
         while (sample := self._subs[0].get(timeout=0)) is not None:
             self._received.add(sample.key, len(sample.payload))
             msg = self._decode(sample.key, sample.payload, None)
@@ -165,9 +167,14 @@ class ServerNode:
             if getattr(msg, "agent_id", None) != agent:
                 self._drop(sample.key, "agent_id does not match the key")
                 continue
+            if isinstance(msg, UpdateAck):
+                update_acks.append(msg)
+                continue
             batch.append((agent, int(msg.seq), msg, len(sample.payload)))
         batch.sort(key=lambda item: item[:2])
         with self._lock:
+            for ack in update_acks:
+                self.backend.update_acked(ack.agent_id, ack.incarnation, ack.update_seq)
             for _, _, msg, nbytes in batch:
                 out = self.backend.handle(msg, nbytes)
                 if self.state_path is not None:
@@ -182,7 +189,7 @@ class ServerNode:
             if self._held_acks and time.monotonic() - self._last_persist >= self.persist_every_s:
                 self.persist()
             self._snapshot()
-        return len(batch)
+        return len(batch) + len(update_acks)
 
     def persist(self) -> None:
         """Write the accepted state (atomically), then release the acks it covers."""
@@ -209,6 +216,8 @@ class ServerNode:
                 key = keys.server_agent_update(self.session, item.target)
             elif isinstance(msg, Ack):
                 key = keys.server_agent_ack(self.session, item.target)
+            elif isinstance(msg, Refusal):
+                key = keys.server_agent_refusal(self.session, item.target)
             else:
                 logger.error("no key for outgoing %s to %s", type(msg).__name__, item.target)
                 continue

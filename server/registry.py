@@ -2,8 +2,14 @@
 
 `Registry.handle` takes one decoded agent -> server message and applies it. It never raises
 on bad content: a message that contradicts what the registry holds is logged and dropped with
-a reason (counted in `Registry.dropped`). Messages are idempotent by their ``seq``: a replay
-is ignored but still acknowledged, so an agent that resends after a lost `Ack` converges.
+a reason (counted in `Registry.dropped`); one whose handling raises is dropped and counted
+too, and its seq is reported in the ack's ``dropped`` list, so it is never left hanging.
+Messages are idempotent by their ``seq``: a replay is ignored but still acknowledged, so an
+agent that resends after a lost `Ack` converges. The ack carries the floor (every seq at or
+below it handled) and the handled ranges above it, so one lost message stalls nothing; a seq
+more than ``seq_window`` above the floor is dropped unacknowledged (it would pin memory).
+An agent id belongs to the incarnation of its first message: another incarnation is refused
+(`Refusal`) and none of its data is taken (see docs/protocol.md).
 Points and frames anchored to a keyframe that has not arrived yet wait in a bounded buffer
 until it does (messages of one agent may arrive out of order).
 
@@ -23,7 +29,16 @@ import torch
 
 from cpslam.common.field import NeuralPointMap
 from cpslam.common.geometry import compose, invert
-from cpslam.protocol import Ack, DecoderWeights, FramePoses, KeyframeMsg, Message, SubmapDelta
+from cpslam.protocol import (
+    Ack,
+    DecoderWeights,
+    FramePoses,
+    KeyframeMsg,
+    Message,
+    Refusal,
+    SubmapDelta,
+)
+from cpslam.protocol.updates import MAX_ACK_RANGES
 from cpslam.server.points import PointTable
 
 __all__ = ["AgentRecord", "KeyframeRecord", "Registry"]
@@ -71,6 +86,10 @@ class AgentRecord:
     seq_floor: int = -1
     """Every seq <= seq_floor was handled."""
     seqs_above: set[int] = field(default_factory=set)
+    incarnation: int | None = None
+    """Incarnation of the agent's first message; others are refused."""
+    raised: list[int] = field(default_factory=list)
+    """Recent seqs whose handling raised (reported in acks as dropped)."""
     alive: bool = True
     messages: int = 0
     bytes: int = 0
@@ -126,6 +145,7 @@ class Registry:
         first_seq: the first ``seq`` agents send (their counter starts there).
         max_pending_points: most points an agent may have waiting for their keyframe; the
             oldest beyond it are dropped.
+        seq_window: a seq more than this above the agent's floor is dropped unacknowledged.
     """
 
     def __init__(
@@ -134,11 +154,13 @@ class Registry:
         decoder_shapes: dict[str, tuple[int, ...]] | None = None,
         first_seq: int = 0,
         max_pending_points: int = 1_000_000,
+        seq_window: int = 65536,
     ) -> None:
         self.feature_dim = int(feature_dim)
         self.decoder_shapes = decoder_shapes
         self.first_seq = int(first_seq)
         self.max_pending_points = int(max_pending_points)
+        self.seq_window = int(seq_window)
         self.agents: dict[str, AgentRecord] = {}
         self.new_keyframes: list[tuple[str, int]] = []
         """(agent, kf) accepted since the back end last took them."""
@@ -158,12 +180,27 @@ class Registry:
             logger.debug("agent %s registered (index %d)", agent_id, rec.index)
         return rec
 
-    def handle(self, msg: Message, nbytes: int = 0) -> list[Ack]:
-        """Apply one agent message; returns the `Ack` to send (empty if none can be given)."""
+    def handle(self, msg: Message, nbytes: int = 0) -> list[Ack | Refusal]:
+        """Apply one agent message; returns the `Ack` to send (empty if none can be given), or
+        a `Refusal` for a message of another incarnation than the agent id's."""
         if not isinstance(msg, AGENT_MESSAGES):
             self._drop(None, f"unexpected message type {type(msg).__name__}")
             return []
         rec = self.agent(msg.agent_id)
+        incarnation = int(msg.incarnation)
+        if rec.incarnation is None:
+            rec.incarnation = incarnation
+        elif incarnation != rec.incarnation:
+            self._drop(rec, "another incarnation", f"{msg.type} seq {msg.seq}")
+            return [Refusal(
+                agent_id=rec.agent_id, incarnation=incarnation,
+                reason=f"agent id {rec.agent_id} already streams as incarnation "
+                       f"{rec.incarnation} into this session's world; restart with --resume "
+                       "to continue it, or use a new agent id")]
+        if int(msg.seq) > rec.seq_floor + self.seq_window:
+            self._drop(rec, "seq beyond the window", f"{msg.type} seq {msg.seq} (floor "
+                       f"{rec.seq_floor})")
+            return []
         rec.messages += 1
         rec.bytes += int(nbytes)
         rec.alive = True
@@ -171,7 +208,12 @@ class Registry:
         if seq <= rec.seq_floor or seq in rec.seqs_above:
             logger.debug("agent %s: seq %d already handled", rec.agent_id, seq)
             return self._ack(rec)
-        reason = self._apply(rec, msg)
+        try:
+            reason = self._apply(rec, msg)
+        except Exception:  # noqa: BLE001 - a bad message must never stop the server
+            logger.exception("agent %s: handling %s seq %d raised", rec.agent_id, msg.type, seq)
+            reason = "handling raised"
+            rec.raised = [*rec.raised, seq][-MAX_ACK_RANGES:]
         if reason:
             self._drop(rec, reason, f"{msg.type} seq {seq}")
         # A dropped message is handled too: the agent must not resend it forever.
@@ -298,7 +340,11 @@ class Registry:
             rec.frames[frame] = rec.pending_frames.pop(frame)
 
     def _ack(self, rec: AgentRecord) -> list[Ack]:
-        return [Ack(agent_id=rec.agent_id, seq=rec.seq_floor)] if rec.seq_floor >= 0 else []
+        if rec.seq_floor < 0 and not rec.seqs_above:
+            return []
+        return [Ack(agent_id=rec.agent_id, seq=rec.seq_floor, incarnation=rec.incarnation or 0,
+                    received=_ranges(rec.seqs_above)[:MAX_ACK_RANGES],
+                    dropped=list(rec.raised))]
 
     def _drop(self, rec: AgentRecord | None, reason: str, what: str = "", count: int = 1) -> None:
         self.dropped[reason] += count
@@ -332,6 +378,7 @@ class Registry:
                 "alignments": {int(e): _t(T) for e, T in rec.alignments.items()},
                 "seq_floor": rec.seq_floor, "seqs_above": sorted(rec.seqs_above),
                 "alive": rec.alive, "messages": rec.messages, "bytes": rec.bytes,
+                "incarnation": rec.incarnation, "raised": list(rec.raised),
                 "dropped": dict(rec.dropped),
             })
         return {"agents": agents, "dropped": dict(self.dropped),
@@ -361,10 +408,24 @@ class Registry:
             rec.alive, rec.messages, rec.bytes = bool(a["alive"]), int(a["messages"]), int(
                 a["bytes"])
             rec.dropped = Counter(a["dropped"])
+            inc = a.get("incarnation")
+            rec.incarnation = None if inc is None else int(inc)
+            rec.raised = [int(x) for x in a.get("raised", [])]
             self.agents[rec.agent_id] = rec
         self.dropped = Counter(state["dropped"])
         self.new_keyframes = [(str(a), int(k)) for a, k in state["new_keyframes"]]
         self.new_decoders = []
+
+
+def _ranges(seqs: set[int]) -> list[tuple[int, int]]:
+    """Sorted inclusive (lo, hi) runs of `seqs`."""
+    out: list[tuple[int, int]] = []
+    for s in sorted(seqs):
+        if out and out[-1][1] == s - 1:
+            out[-1] = (out[-1][0], s)
+        else:
+            out.append((s, s))
+    return out
 
 
 def _t(a: np.ndarray) -> torch.Tensor:
