@@ -24,6 +24,7 @@ interrupted (outputs written once streaming has begun).
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 import time
@@ -85,22 +86,27 @@ class ServerPresence:
 def run_networked(cfg: CpslamConfig, seq: RGBDSequence, agent_id: str, run_dir: Path,
                   device: str, wait_timeout_s: float = 300.0, ack_timeout_s: float = 120.0,
                   show_progress: bool = True, stop: threading.Event | None = None,
-                  on_frame: Callable[..., None] | None = None) -> int:
+                  on_frame: Callable[..., None] | None = None, bus: Bus | None = None,
+                  incarnation: int | None = None) -> int:
     """Run one agent against a server; returns the exit code (see the module docstring).
-    `on_frame(frame, result, odometry)` is called after each frame (`run.rerun`)."""
+    `on_frame(frame, result, odometry)` is called after each frame (`run.rerun`). `bus`: an
+    open bus to use (not closed here) instead of a client session to the configured endpoints;
+    `incarnation`: the one to continue (default: a fresh one, `new_incarnation`)."""
     import torch
 
     from cpslam.agent.node import AgentNode
     from cpslam.common.logs import make_progress
 
     stop = stop if stop is not None else threading.Event()
-    bus = open_client(cfg.transport, wait_timeout_s, f"agent {agent_id}", stop)
+    own_bus = bus is None
+    if bus is None:
+        bus = open_client(cfg.transport, wait_timeout_s, f"agent {agent_id}", stop)
     if bus is None:
         if stop.is_set():
             logger.info("agent %s: interrupted while waiting for the server", agent_id)
             return ExitCode.INTERRUPTED
         return ExitCode.NO_SERVER
-    with bus:
+    with bus if own_bus else contextlib.nullcontext(bus):
         presence = ServerPresence(bus, cfg.transport.session)
         t_wait = time.monotonic()
         found = presence.wait(min(ANNOUNCE_AFTER_S, wait_timeout_s), stop)
@@ -119,7 +125,8 @@ def run_networked(cfg: CpslamConfig, seq: RGBDSequence, agent_id: str, run_dir: 
             return ExitCode.NO_SERVER
         logger.info("agent %s: server found (%.1f s); streaming %d frames", agent_id,
                     time.monotonic() - t_wait, len(seq))
-        node = AgentNode(cfg, seq, bus, agent_id, run_dir, device).start()
+        node = AgentNode(cfg, seq, bus, agent_id, run_dir, device,
+                         incarnation=incarnation).start()
         torch.manual_seed(cfg.run.seed)
         joins_seen = presence.joins
         interrupted = False
