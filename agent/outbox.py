@@ -51,11 +51,18 @@ class Outbox:
         now: monotonic clock (s).
     """
 
-    def __init__(self, max_messages: int = 4096, max_mb: float = 512.0,
-                 resend_after_s: float = 5.0, now: Callable[[], float] = time.monotonic) -> None:
+    def __init__(
+        self,
+        max_messages: int = 4096,
+        max_mb: float = 512.0,
+        resend_after_s: float = 5.0,
+        now: Callable[[], float] = time.monotonic,
+    ) -> None:
         if max_messages < 1 or max_mb <= 0 or resend_after_s <= 0:
-            raise ValueError(f"Outbox: max_messages >= 1, max_mb > 0 and resend_after_s > 0 "
-                             f"expected, got {max_messages}, {max_mb}, {resend_after_s}")
+            raise ValueError(
+                f"Outbox: max_messages >= 1, max_mb > 0 and resend_after_s > 0 "
+                f"expected, got {max_messages}, {max_mb}, {resend_after_s}"
+            )
         self.max_messages, self.max_bytes = int(max_messages), int(max_mb * MB)
         self.resend_after_s, self.now = float(resend_after_s), now
         self._items: OrderedDict[int, tuple[Message, int, float]] = OrderedDict()
@@ -124,13 +131,20 @@ class Outbox:
             return 0
         self.floor = max(self.floor, int(ack.seq))
         dropped = set(ack.dropped)
-        covered = [s for s in self._items if s <= self.floor or s in dropped
-                   or any(lo <= s <= hi for lo, hi in ack.received)]
+        covered = [
+            s
+            for s in self._items
+            if s <= self.floor or s in dropped or any(lo <= s <= hi for lo, hi in ack.received)
+        ]
         for s in covered:
             if s in dropped:
                 self.dropped_by_server.append(s)
-                logger.warning("agent %s: the server dropped message seq %d (handling it "
-                               "failed); not resending it", ack.agent_id, s)
+                logger.warning(
+                    "agent %s: the server dropped message seq %d (handling it "
+                    "failed); not resending it",
+                    ack.agent_id,
+                    s,
+                )
             self.bytes -= self._items.pop(s)[1]
         del self.dropped_by_server[:-1024]  # a log, not a store
         return len(covered)

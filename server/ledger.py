@@ -47,15 +47,26 @@ class ForeignTracker:
         self.inflight: dict[str, OrderedDict[int, Touched]] = {}
         """receiver -> update seq -> what it touched, oldest first."""
 
-    def blocks(self, receiver: MemberMap, others: Sequence[MemberMap],
-               versions: Mapping[str, np.ndarray], cell_size: float, seq: int
-               ) -> list[ForeignPoints]:
+    def blocks(
+        self,
+        receiver: MemberMap,
+        others: Sequence[MemberMap],
+        versions: Mapping[str, np.ndarray],
+        cell_size: float,
+        seq: int,
+    ) -> list[ForeignPoints]:
         """One update's `ForeignPoints` (unsplit; see `parts`)."""
         return self.parts(receiver, others, versions, cell_size, seq, max_points=None)[0]
 
-    def parts(self, receiver: MemberMap, others: Sequence[MemberMap],
-              versions: Mapping[str, np.ndarray], cell_size: float, first_seq: int,
-              max_points: int | None) -> list[list[ForeignPoints]]:
+    def parts(
+        self,
+        receiver: MemberMap,
+        others: Sequence[MemberMap],
+        versions: Mapping[str, np.ndarray],
+        cell_size: float,
+        first_seq: int,
+        max_points: int | None,
+    ) -> list[list[ForeignPoints]]:
         """The blocks of updates ``first_seq, first_seq + 1, …``: one `ForeignPoints` per
         other member in each (all its keyframe poses; removals in the first part only) and
         at most `max_points` points per part (None: one part)."""
@@ -70,8 +81,13 @@ class ForeignTracker:
             key = (r, m.agent_id)
             held, maybe = self.held.setdefault(key, {}), self.maybe.setdefault(key, set())
             need = masks[m.agent_id]
-            stale = np.array([held.get(int(i)) != int(v) or int(i) in maybe
-                              for i, v in zip(ids, version, strict=True)], dtype=bool)
+            stale = np.array(
+                [
+                    held.get(int(i)) != int(v) or int(i) in maybe
+                    for i, v in zip(ids, version, strict=True)
+                ],
+                dtype=bool,
+            )
             send = np.nonzero(need & stale)[0]
             gone = np.asarray(sorted((set(held) | maybe) - set(ids[need].tolist())), np.int64)
             chosen.append((m, send, gone, version))
@@ -87,17 +103,25 @@ class ForeignTracker:
             cut = [min(max(p * per - offset, 0), len(send)) for p in range(n_parts)] + [len(send)]
             offset += len(send)
             for p in range(n_parts):
-                rows = send[cut[p]:cut[p + 1]]
+                rows = send[cut[p] : cut[p + 1]]
                 removed = gone if p == 0 else np.zeros(0, np.int64)
-                out[p].append(ForeignPoints(
-                    source_agent_id=m.agent_id, kf_ids=pm.kf_keys[:, 1].cpu().numpy()
-                    .astype(np.int32), T_group_kf=pm.kf_poses.cpu().numpy(),
-                    point_ids=ids[rows], anchor_kf_ids=pm.anchor_kf.cpu().numpy()[rows]
-                    .astype(np.int32), xyz_local=pm.xyz_local.cpu().numpy()[rows],
-                    features=pm.features.detach().cpu().numpy()[rows].astype(np.float16),
-                    colors=pm.color.cpu().numpy()[rows], removed_ids=removed))
-                touched[p][m.agent_id] = ({int(i): int(v) for i, v in zip(
-                    ids[rows], version[rows], strict=True)}, set(removed.tolist()))
+                out[p].append(
+                    ForeignPoints(
+                        source_agent_id=m.agent_id,
+                        kf_ids=pm.kf_keys[:, 1].cpu().numpy().astype(np.int32),
+                        T_group_kf=pm.kf_poses.cpu().numpy(),
+                        point_ids=ids[rows],
+                        anchor_kf_ids=pm.anchor_kf.cpu().numpy()[rows].astype(np.int32),
+                        xyz_local=pm.xyz_local.cpu().numpy()[rows],
+                        features=pm.features.detach().cpu().numpy()[rows].astype(np.float16),
+                        colors=pm.color.cpu().numpy()[rows],
+                        removed_ids=removed,
+                    )
+                )
+                touched[p][m.agent_id] = (
+                    {int(i): int(v) for i, v in zip(ids[rows], version[rows], strict=True)},
+                    set(removed.tolist()),
+                )
         for p, entry in enumerate(touched):
             self._record(r, first_seq + p, entry)
         return out
@@ -141,7 +165,8 @@ class ForeignTracker:
     def pending(self, receiver: str) -> bool:
         """Updates in flight, or points in an unknown state, for this receiver."""
         return bool(self.inflight.get(receiver)) or any(
-            v for (r, _), v in self.maybe.items() if r == receiver)
+            v for (r, _), v in self.maybe.items() if r == receiver
+        )
 
     def delivered(self, receiver: str) -> dict[str, dict[int, int]]:
         """Source -> point id -> version the receiver surely holds."""
@@ -156,17 +181,25 @@ class ForeignTracker:
 
     def state_dict(self) -> dict:
         """Held and maybe per (receiver, source); updates in flight are in maybe already."""
-        held = {f"{r}\n{s}": torch.tensor(sorted(d.items()), dtype=torch.int64).reshape(-1, 2)
-                for (r, s), d in self.held.items()}
-        maybe = {f"{r}\n{s}": torch.tensor(sorted(v), dtype=torch.int64)
-                 for (r, s), v in self.maybe.items()}
+        held = {
+            f"{r}\n{s}": torch.tensor(sorted(d.items()), dtype=torch.int64).reshape(-1, 2)
+            for (r, s), d in self.held.items()
+        }
+        maybe = {
+            f"{r}\n{s}": torch.tensor(sorted(v), dtype=torch.int64)
+            for (r, s), v in self.maybe.items()
+        }
         return {"held": held, "maybe": maybe}
 
     def load_state_dict(self, state: dict) -> None:
         """Restore a `state_dict` (an older flat one is read as ``held``)."""
         held, maybe = (state["held"], state["maybe"]) if "held" in state else (state, {})
-        self.held = {tuple(k.split("\n")): {int(i): int(v) for i, v in t.tolist()}  # type: ignore[misc]
-                     for k, t in held.items()}
-        self.maybe = {tuple(k.split("\n")): {int(i) for i in t.tolist()}  # type: ignore[misc]
-                      for k, t in maybe.items()}
+        self.held = {
+            tuple(k.split("\n")): {int(i): int(v) for i, v in t.tolist()}  # type: ignore[misc]
+            for k, t in held.items()
+        }
+        self.maybe = {
+            tuple(k.split("\n")): {int(i) for i in t.tolist()}  # type: ignore[misc]
+            for k, t in maybe.items()
+        }
         self.inflight = {}

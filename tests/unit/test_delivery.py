@@ -31,23 +31,44 @@ def keyframe(seq, kf, inc=1, agent="a", z=0.0, dim=8):
     d[kf % dim] = 1
     T = np.eye(4)
     T[2, 3] = z
-    return KeyframeMsg(agent_id=agent, seq=seq, incarnation=inc, kf_id=kf, frame_index=10 * kf,
-                       stamp=kf, T_world_cam=T, descriptor=d)
+    return KeyframeMsg(
+        agent_id=agent,
+        seq=seq,
+        incarnation=inc,
+        kf_id=kf,
+        frame_index=10 * kf,
+        stamp=kf,
+        T_world_cam=T,
+        descriptor=d,
+    )
 
 
 def delta(seq, ids, anchor=0, inc=1, agent="a", f=F, x0=0.0):
     n = len(ids)
     xyz = np.column_stack([x0 + np.arange(n) * 0.5, np.zeros(n), np.ones(n)]).astype(np.float32)
-    return SubmapDelta(agent_id=agent, seq=seq, incarnation=inc,
-                       point_ids=np.asarray(ids, np.int64),
-                       anchor_kf_ids=np.full(n, anchor, np.int32), xyz_local=xyz,
-                       features=np.full((n, f), 0.25, np.float16),
-                       colors=np.zeros((n, 3), np.uint8), removed_ids=np.zeros(0, np.int64))
+    return SubmapDelta(
+        agent_id=agent,
+        seq=seq,
+        incarnation=inc,
+        point_ids=np.asarray(ids, np.int64),
+        anchor_kf_ids=np.full(n, anchor, np.int32),
+        xyz_local=xyz,
+        features=np.full((n, f), 0.25, np.float16),
+        colors=np.zeros((n, 3), np.uint8),
+        removed_ids=np.zeros(0, np.int64),
+    )
 
 
 def frames(seq, inc=1, agent="a"):
-    return FramePoses(agent_id=agent, seq=seq, incarnation=inc, frame_indices=[1], stamps=[0.1],
-                      kf_ids=[0], T_kf_frame=np.eye(4)[None])
+    return FramePoses(
+        agent_id=agent,
+        seq=seq,
+        incarnation=inc,
+        frame_indices=[1],
+        stamps=[0.1],
+        kf_ids=[0],
+        T_kf_frame=np.eye(4)[None],
+    )
 
 
 # --- agent -> server ---------------------------------------------------------------------------
@@ -97,12 +118,15 @@ def test_a_message_whose_handling_raises_is_acked_as_dropped_and_counted(monkeyp
     assert outbox.dropped_by_server == [1] and list(outbox) == [2]
 
 
-@pytest.mark.parametrize("forged", [
-    Ack(agent_id="a", seq=2**63 - 1, incarnation=1),
-    Ack(agent_id="a", seq=0, incarnation=1, received=[(2, 2**63 - 1)]),
-    Ack(agent_id="a", seq=0, incarnation=1, dropped=[9]),
-    Ack(agent_id="a", seq=3, incarnation=2),  # another incarnation's
-])
+@pytest.mark.parametrize(
+    "forged",
+    [
+        Ack(agent_id="a", seq=2**63 - 1, incarnation=1),
+        Ack(agent_id="a", seq=0, incarnation=1, received=[(2, 2**63 - 1)]),
+        Ack(agent_id="a", seq=0, incarnation=1, dropped=[9]),
+        Ack(agent_id="a", seq=3, incarnation=2),  # another incarnation's
+    ],
+)
 def test_forged_acks_leave_the_outbox_alone(forged):
     outbox = Outbox()
     for seq in range(4):
@@ -141,8 +165,11 @@ def test_another_incarnation_is_refused_and_never_joins_the_old_world():
     reg.handle(delta(1, [0, 1], inc=11))
     before = reg.agents["a"].keyframes[0].T_own_kf.copy()
     # The same id restarted without --resume: a new incarnation, its own world and ids from 0.
-    for msg in (keyframe(0, 0, inc=22, z=3.0), delta(1, [0, 1, 2], inc=22, x0=7.0),
-                keyframe(2, 1, inc=22, z=4.0)):
+    for msg in (
+        keyframe(0, 0, inc=22, z=3.0),
+        delta(1, [0, 1, 2], inc=22, x0=7.0),
+        keyframe(2, 1, inc=22, z=4.0),
+    ):
         (reply,) = reg.handle(msg)
         assert isinstance(reply, Refusal) and reply.incarnation == 22 and "--resume" in reply.reason
     rec = reg.agents["a"]
@@ -178,11 +205,15 @@ class Sharing:
     """A server holding agent a0 (a real `AgentLink`) and b1 (synthetic) in one group."""
 
     def __init__(self, max_points: int = 200_000, n_b1: int = 30) -> None:
-        cfg = load_config("tiny", overrides=["mapping.iters_first=5", "mapping.iters=2",
-                                             "tracking.iters=2"], env={})
+        cfg = load_config(
+            "tiny",
+            overrides=["mapping.iters_first=5", "mapping.iters=2", "tracking.iters=2"],
+            env={},
+        )
         odometry = Odometry.from_config(cfg, INTR, "cpu", agent_id=0)
-        self.link = AgentLink("a0", odometry, _describe, frames_every=100, round_every_mappings=99,
-                              incarnation=5)
+        self.link = AgentLink(
+            "a0", odometry, _describe, frames_every=100, round_every_mappings=99, incarnation=5
+        )
         self.f = odometry.point_map.feature_dim
         self.clock = FakeClock()
         self.reg = Registry(self.f)
@@ -192,16 +223,24 @@ class Sharing:
         self.reg.handle(keyframe(0, 0, agent="b1", z=5.0, dim=3))  # as _describe's
         self.reg.handle(delta(1, range(n_b1), agent="b1", f=self.f, x0=-7.0))
         self.group = Group("a0", "a0", {"a0": np.eye(4), "b1": np.eye(4)}, {"a0": 1, "b1": 1})
-        self.sharing = MemberUpdates(self.reg, self.kf_poses, 0.1, 10.0, self.clock,
-                                     resend_after_s=5.0, max_points=max_points)
+        self.sharing = MemberUpdates(
+            self.reg,
+            self.kf_poses,
+            0.1,
+            10.0,
+            self.clock,
+            resend_after_s=5.0,
+            max_points=max_points,
+        )
 
     def kf_poses(self, agent: str) -> dict[int, np.ndarray]:
         return {k: r.T_own_kf for k, r in self.reg.agents[agent].keyframes.items()}
 
     def updates(self) -> list[ServerUpdate]:
-        maps = [MemberMap(a, r.index, r.points.to_point_map(r.index, self.kf_poses(a), self.f,
-                                                             0.1))
-                for a, r in self.reg.agents.items()]
+        maps = [
+            MemberMap(a, r.index, r.points.to_point_map(r.index, self.kf_poses(a), self.f, 0.1))
+            for a, r in self.reg.agents.items()
+        ]
         return [u for u in self.sharing.updates(self.group, maps) if u.agent_id == "a0"]
 
     def deliver(self, update: ServerUpdate) -> None:
