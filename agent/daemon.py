@@ -87,11 +87,12 @@ def run_networked(cfg: CpslamConfig, seq: RGBDSequence, agent_id: str, run_dir: 
                   device: str, wait_timeout_s: float = 300.0, ack_timeout_s: float = 120.0,
                   show_progress: bool = True, stop: threading.Event | None = None,
                   on_frame: Callable[..., None] | None = None, bus: Bus | None = None,
-                  incarnation: int | None = None) -> int:
+                  resume: Path | None = None) -> int:
     """Run one agent against a server; returns the exit code (see the module docstring).
     `on_frame(frame, result, odometry)` is called after each frame (`run.rerun`). `bus`: an
     open bus to use (not closed here) instead of a client session to the configured endpoints;
-    `incarnation`: the one to continue (default: a fresh one, `new_incarnation`)."""
+    `resume`: an earlier run's ``agent_<id>/state.pt`` to continue (same incarnation, seq
+    counter and outbox, `AgentNode.resume`); without it the agent is a new incarnation."""
     import torch
 
     from cpslam.agent.node import AgentNode
@@ -125,8 +126,12 @@ def run_networked(cfg: CpslamConfig, seq: RGBDSequence, agent_id: str, run_dir: 
             return ExitCode.NO_SERVER
         logger.info("agent %s: server found (%.1f s); streaming %d frames", agent_id,
                     time.monotonic() - t_wait, len(seq))
-        node = AgentNode(cfg, seq, bus, agent_id, run_dir, device,
-                         incarnation=incarnation).start()
+        node = AgentNode(cfg, seq, bus, agent_id, run_dir, device)
+        if resume is not None:
+            node.resume(resume)
+        node.start()
+        if resume is not None:
+            node.resend()  # the outbox of the earlier run: the server may never have had it
         torch.manual_seed(cfg.run.seed)
         joins_seen = presence.joins
         interrupted = False

@@ -216,13 +216,42 @@ class AgentNode:
         """Block until something from the server is queued or `timeout_s` passed."""
         return self._server_sub.wait(timeout_s) or len(self._decoder_sub) > 0
 
+    def resume(self, state_path: Path) -> int:
+        """Continue an earlier run of this agent: the odometry from `state_path` (its
+        state.pt), the link (incarnation, seq counter, outbox) from ``link.pt`` beside it; the
+        frames restart after the last one done. Returns that position in the sequence."""
+        import numpy as np
+        import torch
+
+        from cpslam.agent.link_state import load_link_state, read_link_state
+
+        link_path = Path(state_path).with_name("link.pt")
+        if not link_path.is_file():
+            raise ValueError(f"{link_path}: missing; --resume of a networked agent needs the "
+                             "link.pt its earlier run wrote next to state.pt")
+        self.odometry.load_state_dict(torch.load(state_path, map_location=self.device,
+                                                 weights_only=True))
+        load_link_state(self.link, read_link_state(link_path))
+        self.incarnation = self.link.incarnation
+        done, _ = self.odometry.trajectory()
+        start = int(np.searchsorted(self.seq.timestamps, done[-1], side="right")) if len(
+            done) else 0
+        self._frames = processing_frames(self.seq, self.cfg.camera.downscale, start)[1]
+        logger.info("agent %s: resumed incarnation %d at frame position %d (next seq %d, %d "
+                    "unacknowledged)", self.agent_id, self.incarnation, start,
+                    self.link.next_seq, len(self.link.outbox))
+        return start
+
     def write_outputs(self, extra: dict[str, Any] | None = None) -> Path:
-        """``run_dir/agent_<id>/`` as a standalone run writes it; `extra` (e.g. bytes sent per
-        key expression) is added to its metrics.json."""
+        """``run_dir/agent_<id>/`` as a standalone run writes it, plus ``link.pt`` (for
+        --resume); `extra` (e.g. bytes sent per key expression) is added to its metrics.json."""
+        from cpslam.agent.link_state import write_link_state
+
         agent_dir = self.run_dir / f"agent_{self.agent_id}"
         agent_dir.mkdir(parents=True, exist_ok=True)
         write_agent_outputs(self.odometry, agent_dir, self.results, self.wall_s, False,
                             str(self.device), self.seq)
+        write_link_state(self.link, agent_dir / "link.pt")
         if extra:
             metrics_path = agent_dir / "metrics.json"
             metrics = json.loads(metrics_path.read_text())
