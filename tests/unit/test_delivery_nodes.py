@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from cpslam import protocol
-from cpslam.agent.daemon import run_networked
+from cpslam.agent.daemon import ServerPresence, _wait_for_room, run_networked
 from cpslam.agent.node import AgentNode
 from cpslam.common.bus import InMemoryBus, InMemoryNetwork
 from cpslam.common.camera import Intrinsics
@@ -205,3 +205,34 @@ def _wait(condition, timeout_s: float = 60.0) -> None:
             return
         event.wait(0.05)
     raise AssertionError("condition not met in time")
+
+
+def test_a_full_outbox_holds_frames_back_until_acks_make_room(tmp_path, caplog) -> None:
+    cfg = _cfg()
+    cfg = cfg.model_copy(
+        update={"transport": cfg.transport.model_copy(update={"outbox_messages": 2})}
+    )
+    network = InMemoryNetwork()
+    server_bus, agent_bus = InMemoryBus(network), InMemoryBus(network)
+    server = ServerNode(cfg, server_bus, tmp_path / "server").start()
+    node = AgentNode(
+        cfg, WallSequence(tmp_path), agent_bus, "a", tmp_path, describe=_describe
+    ).start()
+    presence = ServerPresence(agent_bus, cfg.transport.session)
+    node.step(next(node.frames()))  # frame 0: keyframe, sub-map and poses, none acked yet
+    assert node.link.outbox.full()
+    stop = threading.Event()
+    thread = threading.Thread(target=server.run, kwargs={"poll_s": 0.02, "stop": stop})
+    thread.start()
+    try:
+        with caplog.at_level("INFO", logger="cpslam.agent.daemon"):
+            _wait_for_room(node, presence, 0, stop)
+    finally:
+        stop.set()
+        thread.join(timeout=60)
+    assert "outbox full" in caplog.text and "room again" in caplog.text
+    assert not node.link.outbox.full()
+    assert server.backend.registry.agents["a"].seq_floor >= 0
+    presence.close()
+    node.close()
+    server.close()
