@@ -73,7 +73,7 @@ class AgentLink:
         federation: send decoder weights at all.
         image_codec, jpeg_quality: how keyframe colour images are compressed for the server.
         incarnation: this run's incarnation id, stamped on every message (0: none drawn).
-        outbox: where sent messages wait for their acks (default: an unbounded-enough one).
+        outbox: where sent messages wait for their acks (default: `Outbox()`'s bounds).
         update_window: a `ServerUpdate` more than this many seqs above the last one applied
             is ignored with a warning (forged or corrupt: it would mask every real one).
     """

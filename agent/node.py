@@ -20,6 +20,7 @@ import logging
 import os
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -77,7 +78,7 @@ class AgentNode:
     def __init__(self, cfg: CpslamConfig, seq: RGBDSequence, bus: Bus, agent_id: str,
                  run_dir: str | Path, device: str = "cpu", describe: Any = None,
                  frames_every: int = 10, incarnation: int | None = None,
-                 now: Any = time.monotonic) -> None:
+                 now: Callable[[], float] = time.monotonic) -> None:
         self.cfg, self.seq, self.bus = cfg, seq, bus
         self.agent_id = keys.check_id(agent_id, "agent id")
         self.session = keys.check_id(cfg.transport.session, "transport.session")
