@@ -167,6 +167,9 @@ def agent(
              "odometry; the in-process loop-closing back end keeps no state to resume)")
     if resume is not None and not resume.is_file():
         fail(f"--resume {resume}: no such file")
+    if resume is not None and not standalone and not resume.with_name("link.pt").is_file():
+        fail(f"--resume {resume}: no link.pt beside it; a networked agent resumes from the "
+             "agent_<id>/ folder of an earlier networked run (state.pt and link.pt)")
 
     from cpslam.agent.standalone import open_for_config, run_standalone
 

@@ -236,3 +236,17 @@ def test_a_full_outbox_holds_frames_back_until_acks_make_room(tmp_path, caplog) 
     presence.close()
     node.close()
     server.close()
+
+
+def test_networked_resume_needs_the_link_state_beside_state_pt(tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from cpslam.agent_cli import app
+
+    state = tmp_path / "agent_0" / "state.pt"
+    state.parent.mkdir()
+    state.write_bytes(b"")
+    result = CliRunner().invoke(
+        app, ["--preset", "tiny", "--no-progress", "--seq", str(tmp_path), "--resume", str(state)]
+    )
+    assert result.exit_code == ExitCode.USAGE and "link.pt" in result.output
