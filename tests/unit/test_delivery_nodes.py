@@ -250,3 +250,66 @@ def test_networked_resume_needs_the_link_state_beside_state_pt(tmp_path: Path) -
         app, ["--preset", "tiny", "--no-progress", "--seq", str(tmp_path), "--resume", str(state)]
     )
     assert result.exit_code == ExitCode.USAGE and "link.pt" in result.output
+
+
+class LoseUpdateOnce:
+    """The server's bus, except that the first `ServerUpdate` to `agent` never arrives."""
+
+    def __init__(self, bus: InMemoryBus, agent: str) -> None:
+        self._bus, self.key, self.lost = bus, f"/server/agent/{agent}/update", False
+
+    def publish(self, key: str, payload: bytes) -> None:
+        if not self.lost and key.endswith(self.key):
+            self.lost = True
+            return
+        self._bus.publish(key, payload)
+
+    def __getattr__(self, name: str):
+        return getattr(self._bus, name)
+
+
+def test_a_server_update_lost_mid_stream_is_repaired(tmp_path: Path) -> None:
+    from cpslam.protocol import keys
+    from tests.unit.test_delivery import delta, keyframe
+
+    cfg, clock = _cfg(), FakeClock()
+    cfg = cfg.model_copy(
+        update={"loop": cfg.loop.model_copy(update={"lambda_fine": 1.0, "lambda_coarse": 1.0})}
+    )  # no loop candidates: the test merges the groups itself
+    network = InMemoryNetwork()
+    server_bus, agent_bus, peer_bus = (InMemoryBus(network) for _ in range(3))
+    lossy = LoseUpdateOnce(server_bus, "a0")
+    server = ServerNode(cfg, lossy, tmp_path / "server", now=clock, image_timeout_s=0.1).start()
+    node = AgentNode(
+        cfg, WallSequence(tmp_path), agent_bus, "a0", tmp_path, describe=_describe, now=clock
+    ).start()
+    f = node.odometry.point_map.feature_dim
+    # Agent b1 is a plain client: its keyframe and 30 points, 3 m behind a0's wall.
+    for msg in (keyframe(0, 0, agent="b1", z=5.0, dim=3), delta(1, range(30), agent="b1", f=f)):
+        peer_bus.publish(
+            keys.agent_topic(
+                "default", "b1", {"keyframe": "keyframe", "submap_delta": "submap"}[msg.type]
+            ),
+            protocol.encode(msg),
+        )
+    for i, frame in enumerate(node.frames()):
+        node.poll()
+        node.step(frame)
+        _settle(agent_bus)
+        if i == 1:
+            with server._lock:
+                server.backend.groups.merge("a0", "b1", np.eye(4))
+        server.poll()
+        _settle(agent_bus)
+        node.poll()
+        _settle(agent_bus)
+        clock.advance(2.0)
+    assert lossy.lost
+    server.poll()  # the last update acks
+    delivered = server.backend.sharing.foreign.delivered("a0")
+    pm = node.odometry.point_map
+    held = set(pm.point_id[pm.agent_id == node.link.foreign_index["b1"]].tolist())
+    assert set(delivered["b1"]) == held == set(range(30))
+    assert node.link.update_seq >= 2  # the first was lost, a repair arrived
+    node.close()
+    server.close()
