@@ -165,6 +165,10 @@ def run_networked(cfg: CpslamConfig, seq: RGBDSequence, agent_id: str, run_dir: 
         finally:
             node.write_outputs(extra={"bus": bus.stats(),
                                       "unacknowledged": len(node.link.outbox),
+                                      "resent": node.link.outbox.resent,
+                                      "ignored_acks": node.link.outbox.ignored_acks,
+                                      "dropped_by_server": len(node.link.outbox.dropped_by_server),
+                                      "incarnation": node.incarnation,
                                       "server_rejoins": max(presence.joins - 1, 0)})
             node.close()
             presence.close()

@@ -3,6 +3,7 @@ streaming; an agent restarted with the same id is refused (exit code 5) unless i
 
 from __future__ import annotations
 
+import json
 import threading
 from pathlib import Path
 
@@ -196,6 +197,13 @@ def test_restart_without_resume_is_refused_and_with_resume_continues(served, tmp
         assert rec.incarnation == incarnation
         assert sorted(rec.frames) == list(range(N_FRAMES))
         assert sorted(rec.keyframes)[: len(keyframes)] == keyframes
+    metrics = {
+        name: json.loads((tmp_path / name / "agent_a" / "metrics.json").read_text())
+        for name in ("first", "again", "resumed")
+    }
+    assert metrics["first"]["incarnation"] == metrics["resumed"]["incarnation"] == incarnation
+    assert metrics["again"]["incarnation"] != incarnation
+    assert metrics["resumed"]["unacknowledged"] == 0
 
 
 def _wait(condition, timeout_s: float = 60.0) -> None:
