@@ -6,7 +6,10 @@
 2. Wait until the server's liveliness token is seen (logged likewise when it takes longer
    than a second). A stop request (SIGINT/SIGTERM) ends either wait within a fraction of a
    second.
-3. For every frame: apply what the server pushed, track and map, publish.
+3. For every frame: apply what the server pushed, resend what is unacknowledged
+   ``transport.resend_after_s`` after it was sent, track and map, publish. While the outbox
+   is full (``transport.outbox_messages`` / ``outbox_mb``) no frame is taken until acks make
+   room (logged once per stall): accepted data is never dropped.
 4. When the server's token comes back after it left (restart, network loss), resend every
    message it has not acknowledged (the outbox); the server drops what it already had.
 5. At the end: send the last frame poses and wait until everything is acknowledged, then
@@ -14,11 +17,14 @@
 
 Exit codes (`cpslam.common.cli.ExitCode`): 0 done and acknowledged, 3 no server within
 ``wait_timeout_s``, 4 the server did not acknowledge everything within ``ack_timeout_s``
-(outputs are written all the same), 130 interrupted (outputs written once streaming has begun).
+(outputs are written all the same), 5 the server refused this incarnation (the agent id
+already streams into the session as another incarnation: restart with a new id), 130
+interrupted (outputs written once streaming has begun).
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 import time
@@ -80,22 +86,29 @@ class ServerPresence:
 def run_networked(cfg: CpslamConfig, seq: RGBDSequence, agent_id: str, run_dir: Path,
                   device: str, wait_timeout_s: float = 300.0, ack_timeout_s: float = 120.0,
                   show_progress: bool = True, stop: threading.Event | None = None,
-                  on_frame: Callable[..., None] | None = None) -> int:
+                  on_frame: Callable[..., None] | None = None, bus: Bus | None = None,
+                  resume: Path | None = None) -> int:
     """Run one agent against a server; returns the exit code (see the module docstring).
-    `on_frame(frame, result, odometry)` is called after each frame (`run.rerun`)."""
+    `on_frame(frame, result, odometry)` is called after each frame (`run.rerun`). `bus`: an
+    open bus to use (not closed here) instead of a client session to the configured endpoints;
+    `resume`: an earlier run's ``agent_<id>/state.pt`` to continue (same incarnation, seq
+    counter and outbox, `AgentNode.resume`); without it the agent is a new incarnation."""
     import torch
 
     from cpslam.agent.node import AgentNode
     from cpslam.common.logs import make_progress
 
     stop = stop if stop is not None else threading.Event()
-    bus = open_client(cfg.transport, wait_timeout_s, f"agent {agent_id}", stop, cfg.limits)
+    own_bus = bus is None
+    if bus is None:
+        bus = open_client(cfg.transport, wait_timeout_s, f"agent {agent_id}", stop,
+                          cfg.limits)
     if bus is None:
         if stop.is_set():
             logger.info("agent %s: interrupted while waiting for the server", agent_id)
             return ExitCode.INTERRUPTED
         return ExitCode.NO_SERVER
-    with bus:
+    with bus if own_bus else contextlib.nullcontext(bus):
         presence = ServerPresence(bus, cfg.transport.session)
         t_wait = time.monotonic()
         found = presence.wait(min(ANNOUNCE_AFTER_S, wait_timeout_s), stop)
@@ -114,10 +127,16 @@ def run_networked(cfg: CpslamConfig, seq: RGBDSequence, agent_id: str, run_dir: 
             return ExitCode.NO_SERVER
         logger.info("agent %s: server found (%.1f s); streaming %d frames", agent_id,
                     time.monotonic() - t_wait, len(seq))
-        node = AgentNode(cfg, seq, bus, agent_id, run_dir, device).start()
+        node = AgentNode(cfg, seq, bus, agent_id, run_dir, device)
+        if resume is not None:
+            node.resume(resume)
+        node.start()
+        if resume is not None:
+            node.resend()  # the outbox of the earlier run: the server may never have had it
         torch.manual_seed(cfg.run.seed)
         joins_seen = presence.joins
         interrupted = False
+        acked = False
         try:
             with make_progress(disable=not show_progress) as bar:
                 task = bar.add_task(f"agent {agent_id}", total=len(seq), info="")
@@ -128,6 +147,12 @@ def run_networked(cfg: CpslamConfig, seq: RGBDSequence, agent_id: str, run_dir: 
                         break
                     joins_seen = _resend_after_rejoin(node, presence, joins_seen)
                     node.poll()
+                    if presence.up:
+                        node.resend_due()
+                    joins_seen = _wait_for_room(node, presence, joins_seen, stop)
+                    if node.refused is not None or stop.is_set():
+                        interrupted = node.refused is None
+                        break
                     result = node.step(frame)
                     if on_frame is not None:
                         on_frame(frame, result, node.odometry)
@@ -135,14 +160,22 @@ def run_networked(cfg: CpslamConfig, seq: RGBDSequence, agent_id: str, run_dir: 
                     away = "" if presence.up else "  (server away)"
                     bar.update(task, advance=1, info=f"{fps:.2f} fps  loss "
                                f"{result.track_loss:.4f}  outbox {len(node.link.outbox)}{away}")
-            node.flush()
-            acked = _wait_acked(node, presence, joins_seen, ack_timeout_s, stop)
+            if node.refused is None and not interrupted:
+                node.flush()
+                acked = _wait_acked(node, presence, joins_seen, ack_timeout_s, stop)
         finally:
             node.write_outputs(extra={"bus": bus.stats(),
                                       "unacknowledged": len(node.link.outbox),
+                                      "resent": node.link.outbox.resent,
+                                      "ignored_acks": node.link.outbox.ignored_acks,
+                                      "dropped_by_server": len(node.link.outbox.dropped_by_server),
+                                      "incarnation": node.incarnation,
                                       "server_rejoins": max(presence.joins - 1, 0)})
             node.close()
             presence.close()
+    if node.refused is not None:
+        logger.error("agent %s: refused by the server (%s)", agent_id, node.refused)
+        return ExitCode.REFUSED
     if interrupted or stop.is_set():
         return ExitCode.INTERRUPTED
     if not acked:
@@ -162,18 +195,37 @@ def _resend_after_rejoin(node: AgentNode, presence: ServerPresence, joins_seen: 
     return joins_seen
 
 
-def _wait_acked(node: AgentNode, presence: ServerPresence, joins_seen: int, timeout_s: float,
-                stop: threading.Event, resend_every_s: float = 5.0) -> bool:
-    """Until the outbox is empty: apply what arrives, resend after a server rejoin and,
-    in case an ack was lost, every `resend_every_s`."""
-    link = node.link
-    deadline = time.monotonic() + timeout_s
-    next_resend = time.monotonic() + resend_every_s
-    while link.outbox and time.monotonic() < deadline and not stop.is_set():
+def _wait_for_room(node: AgentNode, presence: ServerPresence, joins_seen: int,
+                   stop: threading.Event) -> int:
+    """While the outbox is full: apply what arrives, resend what is due; returns joins seen."""
+    outbox = node.link.outbox
+    if not outbox.full():
+        return joins_seen
+    logger.warning("agent %s: outbox full (%d messages, %.1f MiB unacknowledged); waiting for "
+                   "acks before the next frame", node.agent_id, len(outbox), outbox.bytes / 2**20)
+    t0 = time.monotonic()
+    while outbox.full() and node.refused is None and not stop.is_set():
         joins_seen = _resend_after_rejoin(node, presence, joins_seen)
         if not node.poll():
             node.wait_for_server_message(0.1)
-        if time.monotonic() >= next_resend and link.outbox and presence.up:
-            node.resend()
-            next_resend = time.monotonic() + resend_every_s
+        if presence.up:
+            node.resend_due()
+    logger.info("agent %s: outbox has room again after %.1f s", node.agent_id,
+                time.monotonic() - t0)
+    return joins_seen
+
+
+def _wait_acked(node: AgentNode, presence: ServerPresence, joins_seen: int, timeout_s: float,
+                stop: threading.Event) -> bool:
+    """Until the outbox is empty: apply what arrives, resend after a server rejoin and what
+    is unacknowledged ``transport.resend_after_s`` after it was sent (a lost ack)."""
+    link = node.link
+    deadline = time.monotonic() + timeout_s
+    while (link.outbox and time.monotonic() < deadline and not stop.is_set()
+           and node.refused is None):
+        joins_seen = _resend_after_rejoin(node, presence, joins_seen)
+        if not node.poll():
+            node.wait_for_server_message(0.1)
+        if link.outbox and presence.up:
+            node.resend_due()
     return not link.outbox

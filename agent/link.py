@@ -24,7 +24,6 @@ from ``own + 1`` in the order the sources appear. The mapping is local to this a
 from __future__ import annotations
 
 import logging
-from collections import OrderedDict
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
@@ -32,6 +31,7 @@ import numpy as np
 import torch
 
 from cpslam.agent.keyframes import DEPTH_SCALE
+from cpslam.agent.outbox import Outbox
 from cpslam.common.bounds import tensor_mismatch
 from cpslam.common.geometry import compose, invert
 from cpslam.protocol import (
@@ -76,6 +76,10 @@ class AgentLink:
         round_every_mappings: decoder weights are sent every this many mapping calls.
         federation: send decoder weights at all.
         image_codec, jpeg_quality: how keyframe colour images are compressed for the server.
+        incarnation: this run's incarnation id, stamped on every message (0: none drawn).
+        outbox: where sent messages wait for their acks (default: `Outbox()`'s bounds).
+        update_window: a `ServerUpdate` more than this many seqs above the last one applied
+            is ignored with a warning (forged or corrupt: it would mask every real one).
     """
 
     def __init__(
@@ -88,6 +92,9 @@ class AgentLink:
         federation: bool = True,
         image_codec: str = "jpeg",
         jpeg_quality: int = 90,
+        incarnation: int = 0,
+        outbox: Outbox | None = None,
+        update_window: int = 4096,
     ) -> None:
         if frames_every < 1 or round_every_mappings < 1:
             raise ValueError(f"AgentLink: frames_every and round_every_mappings must be >= 1, "
@@ -105,8 +112,9 @@ class AgentLink:
         self.round = 0
         self.T_group_agent = np.eye(4)
         self.update_seq = 0
-        self.acked = -1
-        self.outbox: OrderedDict[int, Message] = OrderedDict()
+        self.incarnation = int(incarnation)
+        self.update_window = int(update_window)
+        self.outbox = outbox if outbox is not None else Outbox()
         self.foreign_index: dict[str, int] = {}
         self.stats = {"updates": 0, "decoders": 0, "foreign_points": 0, "images": 0}
         self._seq = 0
@@ -162,18 +170,19 @@ class AgentLink:
             T_kf_frame=np.stack(T)))]
 
     def on_ack(self, ack: Ack) -> int:
-        """Forget every message the ack covers; returns how many left the outbox."""
+        """Forget every message the ack covers (`Outbox.on_ack`); returns how many left."""
         if ack.agent_id != self.agent_id:
             return 0
-        self.acked = max(self.acked, int(ack.seq))
-        covered = [s for s in self.outbox if s <= self.acked]
-        for s in covered:
-            del self.outbox[s]
-        return len(covered)
+        return self.outbox.on_ack(ack, self._seq, self.incarnation)
+
+    @property
+    def acked(self) -> int:
+        """The highest ack floor seen."""
+        return self.outbox.floor
 
     def unacked(self) -> list[Message]:
         """Messages sent but not acknowledged yet, oldest first (to resend on reconnect)."""
-        return list(self.outbox.values())
+        return self.outbox.messages()
 
     @property
     def next_seq(self) -> int:
@@ -181,8 +190,8 @@ class AgentLink:
         return self._seq
 
     def _stamp(self, msg: Message) -> Message:
-        msg = msg.model_copy(update={"seq": self._seq})
-        self.outbox[self._seq] = msg
+        msg = msg.model_copy(update={"seq": self._seq, "incarnation": self.incarnation})
+        self.outbox.add(self._seq, msg)
         self._seq += 1
         return msg
 
@@ -242,9 +251,15 @@ class AgentLink:
 
     def apply_update(self, update: ServerUpdate) -> bool:
         """Move into the group frame, take corrected poses and foreign points (between
-        frames). Returns False for an update that is not for this agent or is stale."""
+        frames). Returns False for an update that is not for this agent, is stale (applied
+        already: each seq is applied once) or lies beyond ``update_window``."""
         if update.agent_id != self.agent_id or update.seq <= self.update_seq:
             logger.debug("agent %s: ignoring server update seq %d", self.agent_id, update.seq)
+            return False
+        if update.seq > self.update_seq + self.update_window:
+            logger.warning("agent %s: ignoring server update seq %d: more than %d above the "
+                           "last applied (%d)", self.agent_id, update.seq, self.update_window,
+                           self.update_seq)
             return False
         self.update_seq = int(update.seq)
         with self.odometry.editing():

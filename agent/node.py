@@ -5,7 +5,10 @@ liveliness token, its keyframe-image queryable and its subscriptions (everything
 sends it, and the shared decoders of every group: an agent that joins a group learns its id
 in the same step as that group's decoder is sent, so it filters instead of resubscribing);
 `step` processes one frame and publishes what the link produced; `poll` applies, without
-blocking, what arrived (acks trim the outbox, updates move the world, decoders load).
+blocking, what arrived (acks trim the outbox, updates move the world and are acknowledged
+with an `UpdateAck`, decoders load, a `Refusal` of this incarnation sets `refused`).
+Every start draws a fresh random incarnation id (`new_incarnation`), stamped on every
+message, so the server can tell a restarted agent from the one it knows.
 `cpslam.agent.daemon.run_networked` is the daemon loop around it; ``cpslam run`` drives
 `step`/`poll` itself in lock-step for determinism.
 """
@@ -14,14 +17,17 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from cpslam import protocol
 from cpslam.agent.link import AgentLink
 from cpslam.agent.odometry import FrameResult, Odometry
+from cpslam.agent.outbox import Outbox
 from cpslam.agent.standalone import processing_frames, write_agent_outputs
 from cpslam.common.rundir import write_json
 from cpslam.protocol import (
@@ -31,7 +37,9 @@ from cpslam.protocol import (
     KeyframeImageRequest,
     Message,
     ProtocolError,
+    Refusal,
     ServerUpdate,
+    UpdateAck,
     keys,
 )
 
@@ -40,9 +48,15 @@ if TYPE_CHECKING:
     from cpslam.common.config import CpslamConfig
     from cpslam.common.datasets import RGBDFrame, RGBDSequence
 
-__all__ = ["AgentNode"]
+__all__ = ["AgentNode", "new_incarnation"]
 
 logger = logging.getLogger(__name__)
+
+
+def new_incarnation() -> int:
+    """A random non-zero 63-bit incarnation id, from the OS (never from the config seed:
+    two restarts with one config must not collide)."""
+    return int.from_bytes(os.urandom(8), "big") % (2**63 - 1) + 1
 
 
 class AgentNode:
@@ -57,11 +71,14 @@ class AgentNode:
         device: torch device.
         describe: descriptor function (default: `DescriptorExtractor.from_config`).
         frames_every: frame poses per batch.
+        incarnation: this run's incarnation id (default: `new_incarnation`).
+        now: monotonic clock of the outbox's resend timing (s).
     """
 
     def __init__(self, cfg: CpslamConfig, seq: RGBDSequence, bus: Bus, agent_id: str,
                  run_dir: str | Path, device: str = "cpu", describe: Any = None,
-                 frames_every: int = 10) -> None:
+                 frames_every: int = 10, incarnation: int | None = None,
+                 now: Callable[[], float] = time.monotonic) -> None:
         self.cfg, self.seq, self.bus = cfg, seq, bus
         self.agent_id = keys.check_id(agent_id, "agent id")
         self.session = keys.check_id(cfg.transport.session, "transport.session")
@@ -73,9 +90,15 @@ class AgentNode:
 
             describe = DescriptorExtractor.from_config(cfg.place_recognition, device,
                                                        seed=cfg.run.seed).compute
+        t = cfg.transport
+        self.incarnation = new_incarnation() if incarnation is None else int(incarnation)
+        outbox = Outbox(t.outbox_messages, t.outbox_mb, t.resend_after_s, now)
         self.link = AgentLink(agent_id, self.odometry, describe, frames_every=frames_every,
                               round_every_mappings=cfg.federation.round_every_mappings,
-                              federation=cfg.federation.enabled)
+                              federation=cfg.federation.enabled, incarnation=self.incarnation,
+                              outbox=outbox, update_window=t.update_window)
+        self.refused: str | None = None
+        """The server's reason when it refused this incarnation (the agent must stop)."""
         self.results: list[FrameResult] = []
         self.dropped = 0
         self.wall_s = 0.0
@@ -126,25 +149,36 @@ class AgentNode:
     def send(self, messages: list[Message]) -> None:
         """Publish agent messages on their topic keys."""
         topic = {"keyframe": "keyframe", "submap_delta": "submap",
-                 "decoder_weights": "decoder", "frame_poses": "frames"}
+                 "decoder_weights": "decoder", "frame_poses": "frames",
+                 "update_ack": "update_ack"}
         for msg in messages:
             key = keys.agent_topic(self.session, self.agent_id, topic[msg.type])
             try:
                 self.bus.publish(key, protocol.encode(msg))
             except ProtocolError as exc:
                 logger.error("agent %s: could not send %s seq %d: %s", self.agent_id, msg.type,
-                             msg.seq, exc)
+                             getattr(msg, "seq", -1), exc)
 
     def poll(self) -> int:
         """Apply everything queued (acks, updates, shared decoders) without waiting."""
         n = 0
         while (sample := self._server_sub.get(timeout=0)) is not None:
-            msg = self._decode(sample.key, sample.payload, (ServerUpdate, Ack))
+            msg = self._decode(sample.key, sample.payload, (ServerUpdate, Ack, Refusal))
             if isinstance(msg, Ack):
                 self._apply(sample.key, self.link.on_ack, msg)
-            elif isinstance(msg, ServerUpdate):
+            elif isinstance(msg, ServerUpdate) and msg.agent_id == self.agent_id:
                 with self._lock:
                     self._apply(sample.key, self.link.apply_update, msg)
+                # Applied or a repeat: confirm the latest applied (a lost ack is repaired by
+                # the server's resend).
+                if self.link.update_seq > 0:
+                    self.send([UpdateAck(agent_id=self.agent_id, incarnation=self.incarnation,
+                                         update_seq=self.link.update_seq)])
+            elif isinstance(msg, Refusal) and msg.agent_id == self.agent_id:
+                if msg.incarnation == self.incarnation and self.refused is None:
+                    self.refused = msg.reason or "refused"
+                    logger.error("agent %s: the server refused this incarnation: %s",
+                                 self.agent_id, self.refused)
             n += 1
         while (sample := self._decoder_sub.get(timeout=0)) is not None:
             msg = self._decode(sample.key, sample.payload, GroupDecoder)
@@ -176,19 +210,59 @@ class AgentNode:
         """Publish every unacknowledged message again (after a reconnect)."""
         pending = self.link.unacked()
         self.send(pending)
+        self.link.outbox.mark_sent()
         return len(pending)
+
+    def resend_due(self) -> int:
+        """Publish again the messages unacknowledged ``transport.resend_after_s`` after they
+        were last sent (a lost message or ack, while streaming)."""
+        due = self.link.outbox.due()
+        if due:
+            logger.info("agent %s: resending %d unacknowledged messages (seq %d…)",
+                        self.agent_id, len(due), due[0].seq)
+            self.send(due)
+        return len(due)
 
     def wait_for_server_message(self, timeout_s: float) -> bool:
         """Block until something from the server is queued or `timeout_s` passed."""
         return self._server_sub.wait(timeout_s) or len(self._decoder_sub) > 0
 
+    def resume(self, state_path: Path) -> int:
+        """Continue an earlier run of this agent: the odometry from `state_path` (its
+        state.pt), the link (incarnation, seq counter, outbox) from ``link.pt`` beside it; the
+        frames restart after the last one done. Returns that position in the sequence."""
+        import numpy as np
+        import torch
+
+        from cpslam.agent.link_state import load_link_state, read_link_state
+
+        link_path = Path(state_path).with_name("link.pt")
+        if not link_path.is_file():
+            raise ValueError(f"{link_path}: missing; --resume of a networked agent needs the "
+                             "link.pt its earlier run wrote next to state.pt")
+        self.odometry.load_state_dict(torch.load(state_path, map_location=self.device,
+                                                 weights_only=True))
+        load_link_state(self.link, read_link_state(link_path))
+        self.incarnation = self.link.incarnation
+        done, _ = self.odometry.trajectory()
+        start = int(np.searchsorted(self.seq.timestamps, done[-1], side="right")) if len(
+            done) else 0
+        self._frames = processing_frames(self.seq, self.cfg.camera.downscale, start)[1]
+        logger.info("agent %s: resumed incarnation %d at frame position %d (next seq %d, %d "
+                    "unacknowledged)", self.agent_id, self.incarnation, start,
+                    self.link.next_seq, len(self.link.outbox))
+        return start
+
     def write_outputs(self, extra: dict[str, Any] | None = None) -> Path:
-        """``run_dir/agent_<id>/`` as a standalone run writes it; `extra` (e.g. bytes sent per
-        key expression) is added to its metrics.json."""
+        """``run_dir/agent_<id>/`` as a standalone run writes it, plus ``link.pt`` (for
+        --resume); `extra` (e.g. bytes sent per key expression) is added to its metrics.json."""
+        from cpslam.agent.link_state import write_link_state
+
         agent_dir = self.run_dir / f"agent_{self.agent_id}"
         agent_dir.mkdir(parents=True, exist_ok=True)
         write_agent_outputs(self.odometry, agent_dir, self.results, self.wall_s, False,
                             str(self.device), self.seq)
+        write_link_state(self.link, agent_dir / "link.pt")
         if extra:
             metrics_path = agent_dir / "metrics.json"
             metrics = json.loads(metrics_path.read_text())

@@ -41,6 +41,9 @@ class ExitCode(IntEnum):
     """No cpslam-server answered in time."""
     UNACKNOWLEDGED = 4
     """cpslam-agent: the server did not acknowledge everything in time."""
+    REFUSED = 5
+    """cpslam-agent: the server refused this agent incarnation (the id streams already;
+    restart with --resume or a new id)."""
     INTERRUPTED = 130
     """Stopped by Ctrl-C or SIGTERM (128 + SIGINT, the shell's convention)."""
 

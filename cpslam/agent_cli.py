@@ -82,7 +82,8 @@ def agent(
     overwrite: OverwriteOpt = False,
     resume: Annotated[
         Path | None, typer.Option("--resume", help="state.pt of an earlier run to continue from "
-                                  "(with --standalone --no-loops).")
+                                  "(networked: the same incarnation, with link.pt beside it; "
+                                  "or --standalone --no-loops).")
     ] = None,
     no_progress: Annotated[bool, typer.Option("--no-progress", help="No progress bar.")] = False,
 ) -> None:
@@ -96,7 +97,9 @@ def agent(
     when networked, where agents and the server may share RUN; an existing RUN/agent_<id>/ is
     replaced only with --overwrite. Networked: waits for the server, resends what was not
     acknowledged after a server restart, exits 0 once everything is acknowledged (3: no
-    server, 4: unacknowledged).
+    server, 4: unacknowledged, 5: refused because the agent id already streams as another
+    incarnation). Every start is a new incarnation unless --resume RUN/agent_<id>/state.pt
+    continues the earlier one (its link.pt beside it: seq counter, outbox, group frame).
 
     --standalone closes the agent's own loops with the server's back end in this process
     (the run `cpslam run --seq SEQ` makes): trajectory.tum is then the loop-corrected
@@ -159,11 +162,14 @@ def agent(
         fail(str(err))
     if no_loops and not standalone:
         fail("--no-loops works with --standalone only (networked, the server closes loops)")
-    if resume is not None and not (standalone and no_loops):
-        fail("--resume works with --standalone --no-loops only (it continues the odometry; "
-             "the loop-closing back end keeps no state to resume)")
+    if resume is not None and standalone and not no_loops:
+        fail("--resume works networked or with --standalone --no-loops (it continues the "
+             "odometry; the in-process loop-closing back end keeps no state to resume)")
     if resume is not None and not resume.is_file():
         fail(f"--resume {resume}: no such file")
+    if resume is not None and not standalone and not resume.with_name("link.pt").is_file():
+        fail(f"--resume {resume}: no link.pt beside it; a networked agent resumes from the "
+             "agent_<id>/ folder of an earlier networked run (state.pt and link.pt)")
 
     from cpslam.agent.standalone import open_for_config, run_standalone
 
@@ -184,7 +190,7 @@ def agent(
                 sequence.format, len(sequence), torch_device, threads, run_dir)
     if not standalone:
         raise typer.Exit(_networked(cfg, sequence, agent_id, run_dir, torch_device, wait_timeout,
-                                    ack_timeout, not no_progress))
+                                    ack_timeout, not no_progress, resume))
     if loops:
         raise typer.Exit(_with_loops(cfg, sequence, agent_id, run_dir, torch_device,
                                      not no_progress))
@@ -224,7 +230,7 @@ def _with_loops(cfg, sequence, agent_id: str, run_dir: Path, device: str,
 
 
 def _networked(cfg, sequence, agent_id: str, run_dir: Path, device: str, wait_timeout: float,
-               ack_timeout: float, show_progress: bool) -> int:
+               ack_timeout: float, show_progress: bool, resume: Path | None = None) -> int:
     """Run against a server with SIGINT/SIGTERM stopping the stream cleanly."""
     from cpslam.agent.daemon import run_networked
     from cpslam.common.cli import stop_on_signals
@@ -237,7 +243,8 @@ def _networked(cfg, sequence, agent_id: str, run_dir: Path, device: str, wait_ti
     try:
         with stop_on_signals() as stop:
             return run_networked(cfg, sequence, agent_id, run_dir, device, wait_timeout,
-                                 ack_timeout, show_progress, stop, on_frame=recorder)
+                                 ack_timeout, show_progress, stop, on_frame=recorder,
+                                 resume=resume)
     finally:
         if recorder is not None:
             recorder.close()

@@ -23,6 +23,7 @@ from cpslam.protocol.codec import (
     encoded_size,
     max_bytes,
 )
+from cpslam.protocol.delivery import Refusal, UpdateAck
 from cpslam.protocol.errors import ProtocolError
 from cpslam.protocol.messages import (
     DecoderWeights,
@@ -71,4 +72,6 @@ __all__ = [
     "Status",
     "Control",
     "ErrorReply",
+    "UpdateAck",
+    "Refusal",
 ]

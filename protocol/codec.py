@@ -15,6 +15,7 @@ import msgpack
 from pydantic import ValidationError
 
 from cpslam.protocol.base import PROTOCOL_VERSION, Message
+from cpslam.protocol.delivery import Refusal, UpdateAck
 from cpslam.protocol.errors import ProtocolError
 from cpslam.protocol.messages import (
     DecoderWeights,
@@ -52,6 +53,8 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
         Status,
         Control,
         ErrorReply,
+        UpdateAck,
+        Refusal,
     )
 }
 """Wire name (the `type` field) -> message class."""

@@ -6,9 +6,11 @@ Everything lives under ``cpslam/<session>/``::
     agent/<agent>/submap              SubmapDelta       agent -> server (put)
     agent/<agent>/decoder             DecoderWeights    agent -> server (put)
     agent/<agent>/frames              FramePoses        agent -> server (put)
+    agent/<agent>/update_ack          UpdateAck         agent -> server (put)
     agent/<agent>/image/<kf>          KeyframeImage     server -> agent (get; agent answers)
     server/agent/<agent>/update       ServerUpdate      server -> agent (put)
     server/agent/<agent>/ack          Ack               server -> agent (put)
+    server/agent/<agent>/refusal      Refusal           server -> agent (put)
     server/group/<group>/decoder      GroupDecoder      server -> agents (put)
     server/status                     Status            anyone -> server (get; server answers)
     server/control                    Control           operator -> server -> agents (put)
@@ -43,6 +45,7 @@ __all__ = [
     "all_agents_topic",
     "server_agent_update",
     "server_agent_ack",
+    "server_agent_refusal",
     "server_agent_all",
     "all_server_agent",
     "server_group_decoder",
@@ -65,10 +68,10 @@ __all__ = [
 ROOT = "cpslam"
 """First chunk of every key expression."""
 
-AGENT_TOPICS: tuple[str, ...] = ("keyframe", "submap", "decoder", "frames")
+AGENT_TOPICS: tuple[str, ...] = ("keyframe", "submap", "decoder", "frames", "update_ack")
 """Topics an agent publishes on under ``agent/<agent>/``."""
 
-SERVER_AGENT_TOPICS: tuple[str, ...] = ("update", "ack")
+SERVER_AGENT_TOPICS: tuple[str, ...] = ("update", "ack", "refusal")
 """Topics the server publishes on under ``server/agent/<agent>/``."""
 
 _ID_RE = re.compile(r"[A-Za-z0-9_-]{1,64}")
@@ -167,6 +170,11 @@ def server_agent_update(session: str, agent_id: str) -> str:
 def server_agent_ack(session: str, agent_id: str) -> str:
     """Key on which the server puts `Ack`s for one agent."""
     return f"{_base(session)}/server/agent/{check_id(agent_id, 'agent id')}/ack"
+
+
+def server_agent_refusal(session: str, agent_id: str) -> str:
+    """Key on which the server puts a `Refusal` of one of the agent's incarnations."""
+    return f"{_base(session)}/server/agent/{check_id(agent_id, 'agent id')}/refusal"
 
 
 def server_agent_all(session: str, agent_id: str) -> str:

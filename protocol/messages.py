@@ -48,6 +48,8 @@ class KeyframeMsg(Message):
     """Sending agent."""
     seq: Seq
     """Agent's message sequence number (one counter for all its agent -> server messages)."""
+    incarnation: Seq = 0
+    """Random id the agent drew at its start (kept by a resumed agent); see docs/protocol.md."""
     kf_id: KfId
     """Keyframe id, unique per agent, increasing."""
     frame_index: Count
@@ -127,6 +129,8 @@ class SubmapDelta(Message):
     """Sending agent."""
     seq: Seq
     """Agent's message sequence number."""
+    incarnation: Seq = 0
+    """The sending agent's incarnation (as in `KeyframeMsg`)."""
     point_ids: Ids
     """Agent-unique point ids, >= 0, no repeats (int64 [N])."""
     anchor_kf_ids: KfIds
@@ -162,6 +166,8 @@ class DecoderWeights(Message):
     """Sending agent."""
     seq: Seq
     """Agent's message sequence number."""
+    incarnation: Seq = 0
+    """The sending agent's incarnation (as in `KeyframeMsg`)."""
     group_id: Id
     """Group the agent belongs to (its own id until merged)."""
     round: Count
@@ -181,6 +187,8 @@ class FramePoses(Message):
     """Sending agent."""
     seq: Seq
     """Agent's message sequence number."""
+    incarnation: Seq = 0
+    """The sending agent's incarnation (as in `KeyframeMsg`)."""
     frame_indices: Annotated[np.ndarray, ArraySpec("int64", ("N",))]
     """Indices of the frames in the agent's stream (int64 [N], >= 0)."""
     stamps: Annotated[np.ndarray, ArraySpec("float64", ("N",), finite=True)]

@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from cpslam.protocol.base import Message
+from cpslam.protocol.delivery import Refusal, UpdateAck
 from cpslam.protocol.messages import (
     DecoderWeights,
     FramePoses,
@@ -177,7 +178,11 @@ _BUILDERS: dict[str, Callable[..., Message]] = {
         n_samples=120_000,
         tensors=decoder_tensors(rng, n_params),
     ),
-    "ack": lambda rng: Ack(agent_id="agent-0", seq=10),
+    "ack": lambda rng: Ack(agent_id="agent-0", seq=10, incarnation=7, received=[(12, 15)],
+                           dropped=[11]),
+    "update_ack": lambda rng: UpdateAck(agent_id="agent-0", incarnation=7, update_seq=3),
+    "refusal": lambda rng: Refusal(agent_id="agent-0", incarnation=8,
+                                   reason="agent id agent-0 already streams"),
     "status": lambda rng: Status(
         stamp=1.7e9,
         summary={"agents": {"agent-0": {"keyframes": 4, "alive": True}}, "groups": [["agent-0"]]},

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 from pydantic import Field, field_validator, model_validator
@@ -34,6 +34,9 @@ MAX_MEMBERS = 1024
 MAX_FOREIGN = 1024
 MAX_TEXT = 4096
 MAX_JSON_DEPTH = 16
+MAX_ACK_RANGES = 64
+SeqRange = Annotated[list[Seq], Field(min_length=2, max_length=2)]
+"""Inclusive [lo, hi] range of seqs."""
 
 
 class ForeignPoints(WireModel):
@@ -137,14 +140,29 @@ class GroupDecoder(Message):
 
 
 class Ack(Message):
-    """The server has persisted every message of `agent_id` with seq <= `seq`."""
+    """The server has handled (and persisted) every message of `agent_id` with seq <= `seq`
+    (the floor), and those in `received` above it; `dropped` were handled by being dropped."""
 
-    max_bytes = 4096
+    max_bytes = 16384
     type: Literal["ack"] = "ack"
     agent_id: Id
     """Agent whose messages are acknowledged."""
-    seq: Seq
-    """Highest sequence number up to which all messages are persisted."""
+    seq: int = Field(ge=-1, lt=2**63)
+    """The floor: every message with seq <= this is handled (-1: none yet)."""
+    incarnation: Seq = 0
+    """Incarnation of the agent these seqs belong to."""
+    received: list[SeqRange] = Field(default_factory=list, max_length=MAX_ACK_RANGES)
+    """Inclusive seq ranges above the floor that are handled too (a lost message leaves a gap)."""
+    dropped: list[Seq] = Field(default_factory=list, max_length=MAX_ACK_RANGES)
+    """Recent seqs the server dropped because handling them raised (handled, never resend)."""
+
+    @model_validator(mode="after")
+    def _check(self) -> Ack:
+        for lo, hi in self.received:
+            if not self.seq < lo <= hi:
+                raise ValueError(f"received: range ({lo}, {hi}) must lie above the floor "
+                                 f"{self.seq} with lo <= hi")
+        return self
 
 
 def check_json(value: Any, depth: int = 0) -> Any:

@@ -80,6 +80,8 @@ class Backend:
         share_every_s: how often merged groups get the other members' new points.
         registry_args: `Registry`'s caps and expected shapes (`registry_args`; None: none).
         image_cache_bytes: bytes of keyframe images the loop pipeline caches.
+        update_resend_after_s, update_max_points: an unacknowledged update is repaired after
+            this long; an update with more foreign points is split (`MemberUpdates`).
         verify_budget_s: a step stops verifying candidates after this many (wall-clock)
             seconds and leaves the rest for the next step, so a daemon stays responsive (acks,
             updates) while a backlog is worked off. None (lock-step runs): no limit, so the
@@ -109,6 +111,8 @@ class Backend:
         retry_after_s: float = 5.0,
         registry_args: dict[str, Any] | None = None,
         image_cache_bytes: int | None = None,
+        update_resend_after_s: float = 5.0,
+        update_max_points: int = 200_000,
     ) -> None:
         self.verify_budget_s = verify_budget_s
         self.loop_cfg, self.fed_cfg = loop, federation
@@ -132,7 +136,7 @@ class Backend:
             self.member_maps, now, self.t_start, spec, decoders_factory=decoders_factory,
             finetune_lr=finetune_lr, color_weight=color_weight, seed=seed)
         self.sharing = MemberUpdates(self.registry, self.kf_poses, spec.grid_size, share_every_s,
-                                     now)
+                                     now, update_resend_after_s, update_max_points)
 
     @classmethod
     def from_config(cls, cfg: CpslamConfig, fetch_image: Callable[[str, int], KeyframeImage |
@@ -152,6 +156,8 @@ class Backend:
             "finetune_lr": cfg.mapping.lr_decoders,
             "finetune_lr_features": cfg.mapping.lr_features,
             "color_weight": cfg.mapping.color_weight,
+            "update_resend_after_s": cfg.transport.resend_after_s,
+            "update_max_points": cfg.transport.update_max_points,
         }
         args.update(kwargs)
         backend = cls(cfg.loop, cfg.federation, cfg.pose_graph, cfg.refinement, fetch_image, spec,
@@ -216,6 +222,16 @@ class Backend:
         if agent in self.registry.agents:
             self.groups.add_agent(agent)
         return [Outgoing(a.agent_id, a) for a in acks]
+
+    def update_acked(self, agent_id: str, incarnation: int, update_seq: int) -> bool:
+        """The agent applied update `update_seq` (`UpdateAck`); one from an unknown agent or
+        another incarnation is ignored. True when it confirmed foreign points."""
+        rec = self.registry.agents.get(agent_id)
+        if rec is None or rec.incarnation != int(incarnation):
+            logger.warning("agent %s: ignoring update ack of incarnation %d (known: %s)",
+                           agent_id, incarnation, None if rec is None else rec.incarnation)
+            return False
+        return self.sharing.acked(agent_id, int(update_seq))
 
     def agent_left(self, agent_id: str) -> None:
         """The agent vanished: no round waits for it any more; its data stays."""

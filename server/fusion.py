@@ -9,8 +9,8 @@ own poses); no point coordinate is rewritten.
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -18,9 +18,8 @@ import torch
 from cpslam.common.camera import Intrinsics
 from cpslam.common.field import Decoders, FieldSpec, NeuralPointMap, camera_rays, render_rays
 from cpslam.common.field.grid import grid_winners
-from cpslam.protocol import ForeignPoints
 
-__all__ = ["ForeignTracker", "MemberMap", "View", "finetune_decoders", "fuse", "select_foreign"]
+__all__ = ["MemberMap", "View", "finetune_decoders", "fuse", "select_foreign"]
 
 logger = logging.getLogger(__name__)
 
@@ -72,63 +71,6 @@ def select_foreign(receiver: MemberMap, others: Sequence[MemberMap], cell_size: 
         out[m.agent_id] = keep[start : start + len(x)]
         start += len(x)
     return out
-
-
-@dataclass
-class ForeignTracker:
-    """Remembers which foreign points each agent holds, so updates carry only changes."""
-
-    sent: dict[tuple[str, str], dict[int, int]] = field(default_factory=dict)
-    """(receiver, source) -> point id -> version (seq of the write) last sent."""
-
-    def blocks(self, receiver: MemberMap, others: Sequence[MemberMap],
-               versions: Mapping[str, np.ndarray], cell_size: float) -> list[ForeignPoints]:
-        """One `ForeignPoints` per other member: new or changed needed points, points no
-        longer needed as removed ids, and all of the source's keyframe poses."""
-        masks = select_foreign(receiver, others, cell_size)
-        out = []
-        for m in others:
-            pm = m.point_map
-            ids = pm.point_id.cpu().numpy()
-            version = versions[m.agent_id]
-            key = (receiver.agent_id, m.agent_id)
-            before = self.sent.get(key, {})
-            need = masks[m.agent_id]
-            changed = np.array([before.get(int(i)) != int(v) for i, v in zip(ids, version,
-                                                                              strict=True)],
-                               dtype=bool)
-            send = need & changed
-            gone = sorted(set(before) - set(ids[need].tolist()))
-            self.sent[key] = {int(i): int(v) for i, v in zip(ids[need], version[need],
-                                                             strict=True)}
-            kf_ids = pm.kf_keys[:, 1].cpu().numpy()
-            out.append(ForeignPoints(
-                source_agent_id=m.agent_id,
-                kf_ids=kf_ids.astype(np.int32),
-                T_group_kf=pm.kf_poses.cpu().numpy(),
-                point_ids=ids[send],
-                anchor_kf_ids=pm.anchor_kf.cpu().numpy()[send].astype(np.int32),
-                xyz_local=pm.xyz_local.cpu().numpy()[send],
-                features=pm.features.detach().cpu().numpy()[send].astype(np.float16),
-                colors=pm.color.cpu().numpy()[send],
-                removed_ids=np.asarray(gone, np.int64),
-            ))
-        return out
-
-    def forget(self, receiver: str) -> None:
-        """Forget what `receiver` holds (it will get everything again)."""
-        for key in [k for k in self.sent if k[0] == receiver]:
-            del self.sent[key]
-
-    def state_dict(self) -> dict:
-        return {f"{r}\n{s}": torch.tensor(sorted(d.items()), dtype=torch.int64).reshape(-1, 2)
-                for (r, s), d in self.sent.items()}
-
-    def load_state_dict(self, state: dict) -> None:
-        self.sent = {}
-        for key, t in state.items():
-            r, s = key.split("\n")
-            self.sent[(r, s)] = {int(i): int(v) for i, v in t.tolist()}
 
 
 def finetune_decoders(

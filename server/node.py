@@ -38,8 +38,10 @@ from cpslam.protocol import (
     KeyframeImage,
     KeyframeImageRequest,
     ProtocolError,
+    Refusal,
     ServerUpdate,
     Status,
+    UpdateAck,
     keys,
 )
 from cpslam.server.backend import Backend, Outgoing
@@ -177,7 +179,7 @@ class ServerNode:
             if msg is not None:
                 logger.info("control: %s (%s)", msg.action, msg.reason)
                 self.control = msg
-        batch = []
+        batch, update_acks = [], []
         while (sample := self._subs[0].get(timeout=0)) is not None:
             self._received.add(sample.key, len(sample.payload))
             msg = self._decode(sample.key, sample.payload, None)
@@ -191,9 +193,14 @@ class ServerNode:
             if getattr(msg, "agent_id", None) != agent:
                 self._drop(sample.key, "agent_id does not match the key")
                 continue
+            if isinstance(msg, UpdateAck):
+                update_acks.append(msg)
+                continue
             batch.append((agent, int(msg.seq), msg, len(sample.payload)))
         batch.sort(key=lambda item: item[:2])
         with self._lock:
+            for ack in update_acks:
+                self.backend.update_acked(ack.agent_id, ack.incarnation, ack.update_seq)
             for _, _, msg, nbytes in batch:
                 out = self.backend.handle(msg, nbytes)
                 if self.acks is not None:
@@ -210,7 +217,7 @@ class ServerNode:
             if self.acks is not None:
                 self.acks.tick(self._state_snapshot)
             self._snapshot()
-        return len(batch)
+        return len(batch) + len(update_acks)
 
     def persist(self, timeout_s: float | None = None) -> bool:
         """Snapshot the accepted state now, wait (up to `timeout_s`) for its write and release
@@ -240,6 +247,8 @@ class ServerNode:
                 key = keys.server_agent_update(self.session, item.target)
             elif isinstance(msg, Ack):
                 key = keys.server_agent_ack(self.session, item.target)
+            elif isinstance(msg, Refusal):
+                key = keys.server_agent_refusal(self.session, item.target)
             else:
                 logger.error("no key for outgoing %s to %s", type(msg).__name__, item.target)
                 continue

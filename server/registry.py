@@ -2,8 +2,14 @@
 
 `Registry.handle` takes one decoded agent -> server message and applies it. It never raises
 on bad content: a message that contradicts what the registry holds is logged and dropped with
-a reason (counted in `Registry.dropped`). Messages are idempotent by their ``seq``: a replay
-is ignored but still acknowledged, so an agent that resends after a lost `Ack` converges.
+a reason (counted in `Registry.dropped`); one whose handling raises is dropped and counted
+too, and its seq is reported in the ack's ``dropped`` list, so it is never left hanging.
+Messages are idempotent by their ``seq``: a replay is ignored but still acknowledged, so an
+agent that resends after a lost `Ack` converges. The ack carries the floor (every seq at or
+below it handled) and the handled ranges above it, so one lost message stalls nothing; a seq
+more than ``max_seq_ahead`` above the floor is dropped unacknowledged (it would pin memory).
+An agent id belongs to the incarnation of its first message: another incarnation is refused
+(`Refusal`) and none of its data is taken (see docs/protocol.md).
 Points and frames anchored to a keyframe that has not arrived yet wait in a bounded buffer
 until it does (messages of one agent may arrive out of order).
 
@@ -33,7 +39,16 @@ import torch
 from cpslam.common.bounds import CappedCounter, LogThrottle, tensor_mismatch
 from cpslam.common.field import NeuralPointMap
 from cpslam.common.geometry import compose, invert
-from cpslam.protocol import Ack, DecoderWeights, FramePoses, KeyframeMsg, Message, SubmapDelta
+from cpslam.protocol import (
+    Ack,
+    DecoderWeights,
+    FramePoses,
+    KeyframeMsg,
+    Message,
+    Refusal,
+    SubmapDelta,
+)
+from cpslam.protocol.updates import MAX_ACK_RANGES
 from cpslam.server.points import PointTable
 
 if TYPE_CHECKING:
@@ -86,6 +101,10 @@ class AgentRecord:
     seq_floor: int = -1
     """Every seq <= seq_floor was handled."""
     seqs_above: set[int] = field(default_factory=set)
+    incarnation: int | None = None
+    """Incarnation of the agent's first message; others are refused."""
+    raised: list[int] = field(default_factory=list)
+    """Recent seqs whose handling raised (reported in acks as dropped)."""
     alive: bool = True
     messages: int = 0
     bytes: int = 0
@@ -169,7 +188,7 @@ class Registry:
         descriptor_dim: int | None = None,
         max_agents: int | None = None,
         max_pending_frames: int = 100_000,
-        max_seq_ahead: int | None = None,
+        max_seq_ahead: int | None = 65_536,
         max_removed_per_message: int | None = None,
         max_tombstones: int | None = None,
         max_translation_m: float | None = None,
@@ -212,8 +231,9 @@ class Registry:
             logger.debug("agent %s registered (index %d)", agent_id, rec.index)
         return rec
 
-    def handle(self, msg: Message, nbytes: int = 0) -> list[Ack]:
-        """Apply one agent message; returns the `Ack` to send (empty if none can be given)."""
+    def handle(self, msg: Message, nbytes: int = 0) -> list[Ack | Refusal]:
+        """Apply one agent message; returns the `Ack` to send (empty if none can be given), or
+        a `Refusal` for a message of another incarnation than the agent id's."""
         if not isinstance(msg, AGENT_MESSAGES):
             self._drop(None, f"unexpected message type {type(msg).__name__}")
             return []
@@ -228,6 +248,22 @@ class Registry:
                                msg.agent_id, len(self.agents), held)
             return []
         rec = self.agent(msg.agent_id)
+        incarnation = int(msg.incarnation)
+        if rec.incarnation is None:
+            rec.incarnation = incarnation
+        elif incarnation != rec.incarnation:
+            self._drop(rec, "another incarnation", f"{msg.type} seq {msg.seq}")
+            return [Refusal(
+                agent_id=rec.agent_id, incarnation=incarnation,
+                reason=f"agent id {rec.agent_id} already streams as incarnation "
+                       f"{rec.incarnation} into this session's world; restart with --resume "
+                       "to continue it, or use a new agent id")]
+        if self.max_seq_ahead is not None and int(msg.seq) - rec.seq_floor > self.max_seq_ahead:
+            # Not acknowledged and not held (it would pin memory); a genuine agent resends it
+            # once the gap has closed.
+            self._drop(rec, "seq too far ahead", f"{msg.type} seq {msg.seq} (acknowledged "
+                       f"{rec.seq_floor}, limits.max_seq_ahead {self.max_seq_ahead})")
+            return []
         rec.messages += 1
         rec.bytes += int(nbytes)
         rec.alive = True
@@ -235,12 +271,12 @@ class Registry:
         if seq <= rec.seq_floor or seq in rec.seqs_above:
             logger.debug("agent %s: seq %d already handled", rec.agent_id, seq)
             return self._ack(rec)
-        if self.max_seq_ahead is not None and seq - rec.seq_floor > self.max_seq_ahead:
-            # Not acknowledged: a genuine agent resends it once the gap has closed.
-            self._drop(rec, "seq too far ahead", f"{msg.type} seq {seq} (acknowledged "
-                       f"{rec.seq_floor}, limits.max_seq_ahead {self.max_seq_ahead})")
-            return self._ack(rec)
-        reason = self._apply(rec, msg)
+        try:
+            reason = self._apply(rec, msg)
+        except Exception:  # noqa: BLE001 - a bad message must never stop the server
+            logger.exception("agent %s: handling %s seq %d raised", rec.agent_id, msg.type, seq)
+            reason = "handling raised"
+            rec.raised = [*rec.raised, seq][-MAX_ACK_RANGES:]
         if reason:
             self._drop(rec, reason, f"{msg.type} seq {seq}")
         # A dropped message is handled too: the agent must not resend it forever.
@@ -385,7 +421,11 @@ class Registry:
             rec.frames[frame] = rec.pending_frames.pop(frame)
 
     def _ack(self, rec: AgentRecord) -> list[Ack]:
-        return [Ack(agent_id=rec.agent_id, seq=rec.seq_floor)] if rec.seq_floor >= 0 else []
+        if rec.seq_floor < 0 and not rec.seqs_above:
+            return []
+        return [Ack(agent_id=rec.agent_id, seq=rec.seq_floor, incarnation=rec.incarnation or 0,
+                    received=_ranges(rec.seqs_above)[:MAX_ACK_RANGES],
+                    dropped=list(rec.raised))]
 
     def _implausible(self, rec: AgentRecord, msg: Message) -> str:
         """Why the message's poses or keyframe id cannot be right ("" if they can)."""
@@ -447,6 +487,7 @@ class Registry:
                 "alignments": {int(e): _t(T) for e, T in rec.alignments.items()},
                 "seq_floor": rec.seq_floor, "seqs_above": sorted(rec.seqs_above),
                 "alive": rec.alive, "messages": rec.messages, "bytes": rec.bytes,
+                "incarnation": rec.incarnation, "raised": list(rec.raised),
                 "dropped": dict(rec.dropped),
             })
         return {"agents": agents, "dropped": dict(self.dropped),
@@ -478,6 +519,9 @@ class Registry:
             rec.dropped = CappedCounter(AGENT_DROP_REASONS)
             for reason, count in a["dropped"].items():
                 rec.dropped.add(reason, count)
+            inc = a.get("incarnation")
+            rec.incarnation = None if inc is None else int(inc)
+            rec.raised = [int(x) for x in a.get("raised", [])]
             self.agents[rec.agent_id] = rec
         self.dropped = CappedCounter(self.max_counter_keys)
         for reason, count in state["dropped"].items():
@@ -501,6 +545,17 @@ def registry_args(limits: LimitsConfig, descriptor_dim: int) -> dict[str, Any]:
         max_federated_samples=limits.max_federated_samples,
         max_counter_keys=limits.max_counter_keys,
     )
+
+
+def _ranges(seqs: set[int]) -> list[tuple[int, int]]:
+    """Sorted inclusive (lo, hi) runs of `seqs`."""
+    out: list[tuple[int, int]] = []
+    for s in sorted(seqs):
+        if out and out[-1][1] == s - 1:
+            out[-1] = (out[-1][0], s)
+        else:
+            out.append((s, s))
+    return out
 
 
 def _t(a: np.ndarray) -> torch.Tensor:

@@ -70,6 +70,16 @@ class TransportConfig(Section):
     """JSON5 file with Zenoh's access_control object (rules, subjects, policies)."""
     zenoh_config: Path | None = None
     """Zenoh JSON5 config file applied first; the transport keys set here override it."""
+    resend_after_s: PositiveFloat = 5.0
+    """Time (s) after which an unacknowledged message or server update is sent again."""
+    outbox_messages: PositiveInt = 4096
+    """An agent stops taking frames while this many of its messages wait for an ack."""
+    outbox_mb: PositiveFloat = 1024.0
+    """An agent stops taking frames while its unacknowledged messages hold this much (MiB)."""
+    update_window: PositiveInt = 1024
+    """An agent ignores a server update more than this many seqs above its last applied one."""
+    update_max_points: PositiveInt = 200_000
+    """Most foreign points in one server update; a larger one is split into several."""
 
     @model_validator(mode="after")
     def _pairs(self) -> TransportConfig:

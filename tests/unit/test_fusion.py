@@ -9,7 +9,8 @@ from spec_helpers import spec
 
 from cpslam.common.camera import Intrinsics
 from cpslam.common.field import NeuralPointMap
-from cpslam.server.fusion import ForeignTracker, MemberMap, View, finetune_decoders, fuse
+from cpslam.server.fusion import MemberMap, View, finetune_decoders, fuse
+from cpslam.server.ledger import ForeignTracker
 
 CELL = 0.1
 
@@ -42,23 +43,46 @@ def test_fuse_keeps_one_point_per_cell():
     assert len(fuse([a, b], 4, CELL, grid_filter=False)) == 20
 
 
-def test_foreign_points_cover_only_new_cells_and_are_sent_once():
+def test_foreign_points_cover_only_new_cells_and_are_sent_once_acknowledged():
     a = member("a", 0, grid_points(0, 1.0))
     b = member("b", 1, grid_points(0.5, 1.5))
     tracker = ForeignTracker()
     versions = {"b": np.zeros(10, np.int64)}
-    (block,) = tracker.blocks(a, [b], versions, CELL)
+    (block,) = tracker.blocks(a, [b], versions, CELL, seq=1)
     assert block.source_agent_id == "b" and block.kf_ids.tolist() == [0]
     assert sorted(block.point_ids.tolist()) == [5, 6, 7, 8, 9]  # x in [1.0, 1.5)
-    (again,) = tracker.blocks(a, [b], versions, CELL)
-    assert len(again.point_ids) == 0 and len(again.removed_ids) == 0
+    # Not acknowledged: the next update carries them again (a lost update is repaired).
+    (again,) = tracker.blocks(a, [b], versions, CELL, seq=2)
+    assert sorted(again.point_ids.tolist()) == [5, 6, 7, 8, 9]
+    assert tracker.delivered("a") == {} and tracker.pending("a")
+    assert tracker.acked("a", 2) and not tracker.acked("a", 2)  # a repeat confirms nothing
+    assert tracker.delivered("a") == {"b": dict.fromkeys([5, 6, 7, 8, 9], 0)}
+    (quiet,) = tracker.blocks(a, [b], versions, CELL, seq=3)
+    assert len(quiet.point_ids) == 0 and len(quiet.removed_ids) == 0
     versions["b"][7] = 3  # point 7 changed
-    (changed,) = tracker.blocks(a, [b], versions, CELL)
+    (changed,) = tracker.blocks(a, [b], versions, CELL, seq=4)
     assert changed.point_ids.tolist() == [7]
+    assert 7 not in tracker.delivered("a")["b"]  # in flight: its state is unknown
     state = tracker.state_dict()
     other = ForeignTracker()
     other.load_state_dict(state)
-    assert other.sent == tracker.sent
+    assert other.held == tracker.held and other.maybe == tracker.maybe
+
+
+def test_foreign_update_split_into_parts_each_consistent_alone():
+    a = member("a", 0, grid_points(0, 1.0))
+    b = member("b", 1, grid_points(0.5, 1.5))
+    tracker = ForeignTracker()
+    versions = {"b": np.zeros(10, np.int64)}
+    parts = tracker.parts(a, [b], versions, CELL, first_seq=1, max_points=2)
+    assert [len(p[0].point_ids) for p in parts] == [2, 2, 1]
+    assert all(p[0].kf_ids.tolist() == [0] for p in parts)  # any part is usable alone
+    # Part 2 (seq 2) was lost; parts 1 and 3 arrived and were acknowledged.
+    assert tracker.acked("a", 1) and tracker.acked("a", 3)
+    delivered = set(tracker.delivered("a")["b"])
+    assert delivered == set(parts[0][0].point_ids) | set(parts[2][0].point_ids)
+    (repair,) = tracker.blocks(a, [b], versions, CELL, seq=4)
+    assert set(repair.point_ids.tolist()) == set(parts[1][0].point_ids.tolist())
 
 
 def test_finetune_lowers_the_loss_on_a_plane():

@@ -187,8 +187,16 @@ def test_validation_error_names_field_and_expectation():
     with pytest.raises(P.ProtocolError, match="'extra'"):
         P.decode(_pack(wire))
     wire = _wire(sample("ack"))
+    wire["seq"] = -2  # -1 is the floor before any message
+    with pytest.raises(P.ProtocolError, match="'seq'"):
+        P.decode(_pack(wire))
+    wire = _wire(sample("keyframe"))
     wire["seq"] = -1
     with pytest.raises(P.ProtocolError, match="'seq'"):
+        P.decode(_pack(wire))
+    wire = _wire(sample("ack"))
+    wire["received"] = [[5, 6]]  # at or below the floor 10
+    with pytest.raises(P.ProtocolError, match="received"):
         P.decode(_pack(wire))
 
 

@@ -100,6 +100,8 @@ def test_every_key_expression_is_documented():
         keys.agent_image_queryable("S", "A"),
         keys.server_agent_update("S", "A"),
         keys.server_agent_ack("S", "A"),
+        keys.server_agent_refusal("S", "A"),
+        keys.agent_topic("S", "A", "update_ack"),
         keys.server_agent_all("S", "A"),
         keys.all_server_agent("S"),
         keys.server_group_decoder("S", "G"),

@@ -37,10 +37,11 @@ def test_replayed_seq_is_ignored_and_acked():
     assert reg.take_new_keyframes() == [("a", 0)]
 
 
-def test_out_of_order_seqs_ack_the_contiguous_prefix():
+def test_out_of_order_seqs_ack_the_floor_and_the_ranges_above_it():
     reg = Registry(F)
-    assert reg.handle(delta(2, [0], 0)) == []  # nothing contiguous from 0 yet
-    assert reg.handle(keyframe(1, 1)) == []
+    # Nothing contiguous from 0 yet: the floor stays -1, the received range says what is in.
+    assert reg.handle(delta(2, [0], 0)) == [Ack(agent_id="a", seq=-1, received=[(2, 2)])]
+    assert reg.handle(keyframe(1, 1)) == [Ack(agent_id="a", seq=-1, received=[(1, 2)])]
     assert reg.handle(keyframe(0, 0)) == [Ack(agent_id="a", seq=2)]
 
 

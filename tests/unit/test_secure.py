@@ -73,7 +73,8 @@ def test_acl_binds_each_agent_to_its_own_keys() -> None:
     acl = access_control("lab", ["agent-0", "agent-1"], ["operator"])
     assert acl["default_permission"] == "deny" and acl["enabled"]
     assert _allowed(acl, "agent-1", "ingress", "put") == [
-        f"cpslam/lab/agent/agent-1/{t}" for t in ("decoder", "frames", "keyframe", "submap")]
+        f"cpslam/lab/agent/agent-1/{t}"
+        for t in ("decoder", "frames", "keyframe", "submap", "update_ack")]
     assert _allowed(acl, "agent-1", "ingress", "liveliness_token") == [
         "cpslam/lab/alive/agent/agent-1"]
     assert _allowed(acl, "agent-1", "ingress", "declare_queryable") == [

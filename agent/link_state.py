@@ -1,0 +1,98 @@
+"""Save and restore an `AgentLink`'s side of the protocol, for ``cpslam-agent --resume``.
+
+A resumed agent is the same incarnation: it keeps the incarnation id, its message counter (new
+messages continue the seq numbering, so the server takes them and ignores repeats), its outbox
+(resent at once: the server may never have had them), what it already sent of its own points,
+the last server update applied and its place in the group frame. Written atomically next to
+the odometry's state.pt as ``link.pt`` (loadable with ``torch.load(weights_only=True)``).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+
+from cpslam import protocol
+
+if TYPE_CHECKING:
+    from cpslam.agent.link import AgentLink
+
+__all__ = ["load_link_state", "link_state", "read_link_state", "write_link_state"]
+
+_SCALARS = (
+    "incarnation",
+    "_seq",
+    "update_seq",
+    "epoch",
+    "round",
+    "group_id",
+    "_mappings",
+    "_samples",
+)
+
+
+def link_state(link: AgentLink) -> dict:
+    """Plain data and tensors of everything `load_link_state` needs."""
+    state: dict = {name: getattr(link, name) for name in _SCALARS}
+    state.update(
+        agent_id=link.agent_id,
+        group_members=list(link.group_members),
+        T_group_agent=torch.from_numpy(np.asarray(link.T_group_agent, np.float64).copy()),
+        foreign_index=dict(link.foreign_index),
+        frame_kf=torch.tensor(link._frame_kf, dtype=torch.int64),
+        sent_ids=torch.from_numpy(link._sent_ids.astype(np.int64)),
+        sent_features=torch.from_numpy(link._sent_features.astype(np.float16)),
+        outbox=[
+            torch.frombuffer(bytearray(protocol.encode(m)), dtype=torch.uint8)
+            for m in link.unacked()
+        ],
+        pending_frames=[
+            [int(i), float(t), int(k), torch.from_numpy(np.asarray(T).copy())]
+            for i, t, k, T in link._pending_frames
+        ],
+    )
+    return state
+
+
+def load_link_state(link: AgentLink, state: dict) -> None:
+    """Restore `link_state` into a fresh link of the same agent id."""
+    if state["agent_id"] != link.agent_id:
+        raise ValueError(
+            f"link state of agent {state['agent_id']!r} cannot resume agent {link.agent_id!r}"
+        )
+    for name in _SCALARS:
+        setattr(link, name, type(getattr(link, name))(state[name]))
+    link.group_members = [str(m) for m in state["group_members"]]
+    link.T_group_agent = state["T_group_agent"].numpy().copy()
+    link.foreign_index = {str(k): int(v) for k, v in state["foreign_index"].items()}
+    link._frame_kf = [int(k) for k in state["frame_kf"].tolist()]
+    link._sent_ids = state["sent_ids"].numpy().copy()
+    link._sent_features = state["sent_features"].numpy().copy()
+    link._pending_frames = [
+        (int(i), float(t), int(k), T.numpy().copy()) for i, t, k, T in state["pending_frames"]
+    ]
+    for raw in state["outbox"]:
+        msg = protocol.decode(raw.numpy().tobytes())
+        link.outbox.add(int(msg.seq), msg)
+
+
+def write_link_state(link: AgentLink, path: Path) -> None:
+    """`link_state` to `path`, atomically."""
+    tmp = path.with_suffix(".tmp")
+    torch.save(link_state(link), tmp)
+    os.replace(tmp, path)
+
+
+def read_link_state(path: Path) -> dict:
+    """A `link_state` written by `write_link_state`; a clear error when it cannot be read."""
+    try:
+        return torch.load(path, weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - name the file and what to do
+        raise ValueError(
+            f"{path}: cannot read the agent's link state ({exc}); it is written "
+            "next to state.pt by a networked cpslam-agent"
+        ) from exc
