@@ -9,7 +9,6 @@ the odometry's state.pt as ``link.pt`` (loadable with ``torch.load(weights_only=
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -17,6 +16,7 @@ import numpy as np
 import torch
 
 from cpslam import protocol
+from cpslam.common.durable import torch_save_atomic
 
 if TYPE_CHECKING:
     from cpslam.agent.link import AgentLink
@@ -67,24 +67,22 @@ def load_link_state(link: AgentLink, state: dict) -> None:
     for name in _SCALARS:
         setattr(link, name, type(getattr(link, name))(state[name]))
     link.group_members = [str(m) for m in state["group_members"]]
-    link.T_group_agent = state["T_group_agent"].numpy().copy()
+    link.T_group_agent = state["T_group_agent"].cpu().numpy().copy()
     link.foreign_index = {str(k): int(v) for k, v in state["foreign_index"].items()}
     link._frame_kf = [int(k) for k in state["frame_kf"].tolist()]
-    link._sent_ids = state["sent_ids"].numpy().copy()
-    link._sent_features = state["sent_features"].numpy().copy()
+    link._sent_ids = state["sent_ids"].cpu().numpy().copy()
+    link._sent_features = state["sent_features"].cpu().numpy().copy()
     link._pending_frames = [
-        (int(i), float(t), int(k), T.numpy().copy()) for i, t, k, T in state["pending_frames"]
+        (int(i), float(t), int(k), T.cpu().numpy().copy()) for i, t, k, T in state["pending_frames"]
     ]
     for raw in state["outbox"]:
-        msg = protocol.decode(raw.numpy().tobytes())
+        msg = protocol.decode(raw.cpu().numpy().tobytes())
         link.outbox.add(int(msg.seq), msg)
 
 
 def write_link_state(link: AgentLink, path: Path) -> None:
     """`link_state` to `path`, atomically."""
-    tmp = path.with_suffix(".tmp")
-    torch.save(link_state(link), tmp)
-    os.replace(tmp, path)
+    torch_save_atomic(link_state(link), path)
 
 
 def read_link_state(path: Path) -> dict:
