@@ -3,7 +3,10 @@
 `AgentLink` sits next to an `Odometry`. After every ``odometry.step`` it turns what happened
 into protocol messages (keyframes with descriptors, sub-map deltas of the agent's OWN points,
 batched frame poses, decoder weights for federated rounds), numbers them with one counter
-(``seq`` from 0) and keeps each in an outbox until an `Ack` covers it. Between frames it
+(``seq`` from 0) and keeps each in an outbox until an `Ack` covers it. Sub-map deltas go
+every ``submap_every_mappings`` mapping calls with only the points that moved enough since
+the server's copy, decoder weights as a delta against the last loaded group decoder
+(`cpslam.agent.deltas`). Between frames it
 applies what the server pushed:
 
 - `ServerUpdate`: the whole local world moves into the group frame (keyframe poses in the
@@ -31,6 +34,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
+from cpslam.agent.deltas import DecoderBase, SubmapMirror, encode_features
 from cpslam.agent.keyframes import DEPTH_SCALE
 from cpslam.common.geometry import compose, invert
 from cpslam.protocol import (
@@ -72,6 +76,10 @@ class AgentLink:
         round_every_mappings: decoder weights are sent every this many mapping calls.
         federation: send decoder weights at all.
         image_codec, jpeg_quality: how keyframe colour images are compressed for the server.
+        submap_every_mappings: a sub-map delta goes every this many mapping calls.
+        feature_threshold, feature_codec: which known points are resent, and how features
+            travel (`SubmapMirror`).
+        decoder_delta: send decoder weights as an int8 delta against the last group decoder.
     """
 
     def __init__(
@@ -84,10 +92,15 @@ class AgentLink:
         federation: bool = True,
         image_codec: str = "jpeg",
         jpeg_quality: int = 90,
+        submap_every_mappings: int = 1,
+        feature_threshold: float = 0.0,
+        feature_codec: str = "float16",
+        decoder_delta: bool = False,
     ) -> None:
-        if frames_every < 1 or round_every_mappings < 1:
-            raise ValueError(f"AgentLink: frames_every and round_every_mappings must be >= 1, "
-                             f"got {frames_every}, {round_every_mappings}")
+        if min(frames_every, round_every_mappings, submap_every_mappings) < 1:
+            raise ValueError(f"AgentLink: frames_every, round_every_mappings and "
+                             f"submap_every_mappings must be >= 1, got {frames_every}, "
+                             f"{round_every_mappings}, {submap_every_mappings}")
         self.agent_id = agent_id
         self.odometry = odometry
         self.describe = describe
@@ -108,8 +121,12 @@ class AgentLink:
         self._seq = 0
         self._frame_kf: list[int] = []  # keyframe each trajectory entry is expressed against
         self._pending_frames: list[tuple[int, float, int, np.ndarray]] = []
-        self._sent_ids = np.zeros(0, np.int64)  # sorted
-        self._sent_features = np.zeros((0, odometry.point_map.feature_dim), np.float16)
+        self.mirror = SubmapMirror(odometry.point_map.feature_dim, feature_threshold,
+                                   feature_codec)  # type: ignore[arg-type]
+        self.submap_every_mappings = submap_every_mappings
+        self.decoder_delta = decoder_delta
+        self.decoder_base = DecoderBase()
+        self._submap_mappings = 0
         self._mappings = 0
         self._samples = 0
         self._decoders_waiting: dict[str, GroupDecoder] = {}
@@ -131,9 +148,11 @@ class AgentLink:
             pixels = self.odometry.n_pixels_first if first else self.odometry.n_pixels
             self._samples += result.map_steps * pixels
             self._mappings += 1
-            delta = self._submap_delta()
-            if delta is not None:
-                out.append(delta)
+            self._submap_mappings += 1
+            if self._submap_mappings >= self.submap_every_mappings:
+                delta = self._submap_delta()
+                if delta is not None:
+                    out.append(delta)
             if self.federation and self._mappings >= self.round_every_mappings:
                 out.append(self._decoder_weights())
         if result.is_keyframe or len(self._pending_frames) >= self.frames_every:
@@ -197,40 +216,35 @@ class AgentLink:
             n_points=len(kf.point_ids)))
 
     def _submap_delta(self) -> SubmapDelta | None:
-        """Own points that are new or whose (float16) features changed since the last delta,
-        and own points that disappeared."""
+        """Own points that are new or moved enough since the server's copy, and own points
+        that disappeared."""
+        self._submap_mappings = 0
         pm = self.odometry.point_map
         rows = (pm.agent_id == self.own).nonzero(as_tuple=True)[0]
         ids = pm.point_id[rows].cpu().numpy()
         order = np.argsort(ids)
         ids, rows = ids[order], rows[torch.from_numpy(order).to(rows.device)]
-        feats = pm.features.detach()[rows].cpu().numpy().astype(np.float16)
-        known = np.zeros(len(ids), bool)
-        pos = np.zeros(len(ids), np.int64)
-        if len(self._sent_ids) and len(ids):
-            pos = np.minimum(np.searchsorted(self._sent_ids, ids), len(self._sent_ids) - 1)
-            known = self._sent_ids[pos] == ids
-        changed = ~known
-        if known.any():
-            changed[known] = (self._sent_features[pos[known]] != feats[known]).any(axis=1)
-        removed = np.setdiff1d(self._sent_ids, ids)
-        self._sent_ids, self._sent_features = ids, feats
-        if not changed.any() and not len(removed):
+        feats = pm.features.detach()[rows].cpu().numpy().astype(np.float32)
+        send, removed = self.mirror.select(ids, feats)
+        if not send.any() and not len(removed):
             return None
-        sel = torch.from_numpy(np.nonzero(changed)[0]).to(rows.device)
-        r = rows[sel]
+        fields, received = encode_features(feats[send], self.mirror.codec)
+        self.mirror.commit(ids, feats, send, received)
+        r = rows[torch.from_numpy(np.nonzero(send)[0]).to(rows.device)]
         return self._stamp(SubmapDelta(
-            agent_id=self.agent_id, seq=0, point_ids=ids[changed],
+            agent_id=self.agent_id, seq=0, point_ids=ids[send],
             anchor_kf_ids=pm.anchor_kf[r].cpu().numpy().astype(np.int32),
             xyz_local=pm.xyz_local[r].detach().cpu().numpy().astype(np.float32),
-            features=feats[changed], colors=pm.color[r].cpu().numpy().astype(np.uint8),
-            removed_ids=removed.astype(np.int64)))
+            colors=pm.color[r].cpu().numpy().astype(np.uint8),
+            removed_ids=removed.astype(np.int64), **fields))
 
     def _decoder_weights(self) -> DecoderWeights:
         tensors = {k: v.detach().cpu().numpy().astype(np.float32)
                    for k, v in self.odometry.decoders.state_dict().items()}
+        fields = (self.decoder_base.delta_fields(self.group_id, tensors) if self.decoder_delta
+                  else {"tensors": tensors})
         msg = DecoderWeights(agent_id=self.agent_id, seq=0, group_id=self.group_id,
-                             round=self.round, n_samples=self._samples, tensors=tensors)
+                             round=self.round, n_samples=self._samples, **fields)
         self._mappings, self._samples = 0, 0
         return self._stamp(msg)
 
@@ -287,6 +301,7 @@ class AgentLink:
             state.decoders.load_state_dict({k: torch.as_tensor(v, device=device)
                                             for k, v in msg.tensors.items()})
         self.round = int(msg.round)
+        self.decoder_base.set(msg.group_id, msg.round, msg.tensors)
         self._mappings, self._samples = 0, 0
         self.odometry.mark_fused()
         self.stats["decoders"] += 1

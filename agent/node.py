@@ -24,6 +24,7 @@ from cpslam.agent.link import AgentLink
 from cpslam.agent.odometry import FrameResult, Odometry
 from cpslam.agent.standalone import processing_frames, write_agent_outputs
 from cpslam.common.rundir import write_json
+from cpslam.common.trajectory import sensor_seconds
 from cpslam.protocol import (
     Ack,
     ErrorReply,
@@ -75,7 +76,11 @@ class AgentNode:
                                                        seed=cfg.run.seed).compute
         self.link = AgentLink(agent_id, self.odometry, describe, frames_every=frames_every,
                               round_every_mappings=cfg.federation.round_every_mappings,
-                              federation=cfg.federation.enabled)
+                              federation=cfg.federation.enabled,
+                              submap_every_mappings=cfg.link.submap_every_mappings,
+                              feature_threshold=cfg.link.feature_threshold,
+                              feature_codec=cfg.link.feature_codec,
+                              decoder_delta=cfg.link.decoder_delta)
         self.results: list[FrameResult] = []
         self.dropped = 0
         self.wall_s = 0.0
@@ -130,7 +135,7 @@ class AgentNode:
         for msg in messages:
             key = keys.agent_topic(self.session, self.agent_id, topic[msg.type])
             try:
-                self.bus.publish(key, protocol.encode(msg))
+                self.bus.publish(key, protocol.encode(msg, self.cfg.link.zstd_level))
             except ProtocolError as exc:
                 logger.error("agent %s: could not send %s seq %d: %s", self.agent_id, msg.type,
                              msg.seq, exc)
@@ -171,6 +176,14 @@ class AgentNode:
     def wait_for_server_message(self, timeout_s: float) -> bool:
         """Block until something from the server is queued or `timeout_s` passed."""
         return self._server_sub.wait(timeout_s) or len(self._decoder_sub) > 0
+
+    def sent_per_sensor_s(self, stats: dict[str, dict]) -> dict[str, float]:
+        """Bytes published per second of sensor time (the processed frames' span), per key;
+        empty before two frames."""
+        sensor = sensor_seconds(r.timestamp for r in self.results)
+        if not sensor:
+            return {}
+        return {k: row["bytes"] / sensor for k, row in stats.get("sent", {}).items()}
 
     def write_outputs(self, extra: dict[str, Any] | None = None) -> Path:
         """``run_dir/agent_<id>/`` as a standalone run writes it; `extra` (e.g. bytes sent per

@@ -24,6 +24,7 @@ import torch
 from cpslam.common.field import NeuralPointMap
 from cpslam.common.geometry import compose, invert
 from cpslam.protocol import Ack, DecoderWeights, FramePoses, KeyframeMsg, Message, SubmapDelta
+from cpslam.server.bases import DecoderBases
 from cpslam.server.points import PointTable
 
 __all__ = ["AgentRecord", "KeyframeRecord", "Registry"]
@@ -143,6 +144,8 @@ class Registry:
         self.new_keyframes: list[tuple[str, int]] = []
         """(agent, kf) accepted since the back end last took them."""
         self.new_decoders: list[tuple[str, DecoderWeights]] = []
+        self.decoder_bases = DecoderBases()
+        """Published group decoders that agents' decoder deltas refer to."""
         self.dropped: Counter = Counter()
         """Reason -> count of dropped messages (or parts), over all agents."""
 
@@ -239,7 +242,7 @@ class Registry:
         return ""
 
     def _submap(self, rec: AgentRecord, msg: SubmapDelta) -> str:
-        f = msg.features.shape[1]
+        f = msg.feature_dim
         if msg.point_ids.size and f != self.feature_dim:
             return f"features have width {f}, the map uses {self.feature_dim}"
         seq = int(msg.seq)
@@ -248,7 +251,8 @@ class Registry:
             table.remove(msg.removed_ids, seq)
             table.remove(msg.point_ids, seq, tombstone=False)
         known = np.isin(msg.anchor_kf_ids, np.fromiter(rec.keyframes, np.int64, len(rec.keyframes)))
-        columns = (msg.point_ids, msg.anchor_kf_ids, msg.xyz_local, msg.features, msg.colors)
+        columns = (msg.point_ids, msg.anchor_kf_ids, msg.xyz_local,
+                   msg.feature_values().astype(np.float16), msg.colors)
         rec.points.upsert(*(c[known] for c in columns), seq)
         rec.pending_points.upsert(*(c[~known] for c in columns), seq)
         overflow = len(rec.pending_points) - self.max_pending_points
@@ -265,17 +269,22 @@ class Registry:
         return ""
 
     def _decoder(self, rec: AgentRecord, msg: DecoderWeights) -> str:
+        tensors = msg.values()
+        if msg.base_round is not None:
+            tensors = self.decoder_bases.apply(msg.group_id, msg.base_round, tensors)
+            if isinstance(tensors, str):
+                return tensors
         if self.decoder_shapes is not None:
-            names = set(msg.tensors)
+            names = set(tensors)
             if names != set(self.decoder_shapes):
                 missing = sorted(set(self.decoder_shapes) - names)[:3]
                 extra = sorted(names - set(self.decoder_shapes))[:3]
                 return f"decoder tensors differ (missing {missing}, unknown {extra})"
-            for name, value in msg.tensors.items():
+            for name, value in tensors.items():
                 if tuple(value.shape) != tuple(self.decoder_shapes[name]):
                     return (f"decoder tensor {name} has shape {list(value.shape)}, expected "
                             f"{list(self.decoder_shapes[name])}")
-        rec.decoder = {k: np.asarray(v, np.float32) for k, v in msg.tensors.items()}
+        rec.decoder = tensors
         rec.decoder_samples = int(msg.n_samples)
         rec.decoder_round = int(msg.round)
         rec.decoder_group = str(msg.group_id)

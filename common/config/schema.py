@@ -16,7 +16,7 @@ from cpslam.common.config.collab import (
     PoseGraphConfig,
     RefinementConfig,
 )
-from cpslam.common.config.runtime import RunConfig, TransportConfig
+from cpslam.common.config.runtime import LinkConfig, RunConfig, TransportConfig
 from cpslam.common.config.slam import (
     CameraConfig,
     FieldConfig,
@@ -32,6 +32,7 @@ __all__ = [
     "FederationConfig",
     "FieldConfig",
     "KeyframesConfig",
+    "LinkConfig",
     "LoopConfig",
     "MappingConfig",
     "PlaceRecognitionConfig",
@@ -71,5 +72,7 @@ class CpslamConfig(Section):
     """Map refinement after a pose-graph correction."""
     transport: TransportConfig = TransportConfig()
     """The message bus between agents and server."""
+    link: LinkConfig = LinkConfig()
+    """What agents send the server and how compactly: sub-map deltas, decoders, compression."""
     run: RunConfig = RunConfig()
     """Process-level settings: output, device, seeds, logging."""
