@@ -29,12 +29,13 @@ from __future__ import annotations
 import logging
 from collections import OrderedDict
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
 from cpslam.agent.deltas import DecoderBase, SubmapMirror, encode_features
+from cpslam.agent.foreign import merge_foreign
 from cpslam.agent.keyframes import DEPTH_SCALE
 from cpslam.common.geometry import compose, invert
 from cpslam.protocol import (
@@ -368,33 +369,10 @@ class AgentLink:
 
     def _merge_foreign(self, block: ForeignPoints) -> int:
         """Add (or replace) another member's points; returns how many were added."""
-        pm = self.odometry.point_map
-        if block.point_ids.size and block.features.shape[1] != pm.feature_dim:
-            logger.warning("agent %s: foreign points of %s have %d features, the map %d; "
-                           "dropped", self.agent_id, block.source_agent_id,
-                           block.features.shape[1], pm.feature_dim)
-            return 0
         key = self.foreign_index.setdefault(
             block.source_agent_id, max([self.own, *self.foreign_index.values()]) + 1)
-        if len(block.kf_ids):
-            pm.set_keyframe_poses(block.kf_ids.astype(np.int64), block.T_group_kf, key)
-        if block.removed_ids.size:
-            pm.remove(torch.from_numpy(block.removed_ids), key)
-        if not block.point_ids.size:
-            return 0
-        pm.remove(torch.from_numpy(block.point_ids), key)
-        anchored = np.array([pm.has_keyframe(int(k), key) for k in block.anchor_kf_ids], bool)
-        if not anchored.all():
-            logger.warning("agent %s: %d foreign points of %s anchored to unknown keyframes; "
-                           "dropped", self.agent_id, int((~anchored).sum()),
-                           block.source_agent_id)
-        n = int(anchored.sum())
-        if n:
-            _append_points(pm, key, block.point_ids[anchored],
-                           block.anchor_kf_ids[anchored].astype(np.int64),
-                           block.xyz_local[anchored], block.features[anchored],
-                           block.colors[anchored])
-            self.stats["foreign_points"] += n
+        n = merge_foreign(self.odometry.point_map, key, block, self.agent_id)
+        self.stats["foreign_points"] += n
         return n
 
 
@@ -406,25 +384,3 @@ def _rigid(T: np.ndarray) -> np.ndarray:
     T[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
     T[3] = (0.0, 0.0, 0.0, 1.0)
     return T
-
-
-def _append_points(pm: Any, agent: int, ids: np.ndarray, anchors: np.ndarray,
-                   xyz_local: np.ndarray, features: np.ndarray, colors: np.ndarray) -> None:
-    """Append points given in their anchors' frames (no grid filter: the server only sends
-    points in cells the receiver's own points leave free)."""
-    state = pm.state_dict()
-    n = len(ids)
-    extra = {
-        "anchor_kf": torch.from_numpy(anchors.astype(np.int64)),
-        "xyz_local": torch.from_numpy(xyz_local.astype(np.float32)),
-        "features": torch.from_numpy(features.astype(np.float32)),
-        "agent_id": torch.full((n,), agent, dtype=torch.int32),
-        "point_id": torch.from_numpy(ids.astype(np.int64)),
-        "color": torch.from_numpy(colors.astype(np.uint8)),
-    }
-    for name, value in extra.items():
-        state[name] = torch.cat((state[name], value))
-    nxt = {int(a): int(v) for a, v in state["next_point_id"].tolist()}
-    nxt[agent] = max(nxt.get(agent, 0), int(ids.max()) + 1)
-    state["next_point_id"] = torch.tensor(sorted(nxt.items()), dtype=torch.int64).reshape(-1, 2)
-    pm.load_state_dict(state, source="foreign points")
