@@ -7,7 +7,10 @@ server's copy of that point. Comparing against the server's copy, not against th
 local value, means slow drift below the threshold still gets sent once it adds up.
 
 `DecoderBase` remembers the group decoder the agent last loaded (the last agreed weights of
-its group) and turns local weights into an int8 delta against it.
+its group) and, while there is none, the weights the server holds from the agent's last
+acknowledged `DecoderWeights`; it turns local weights into an int8 delta against one of them.
+Every ``full_every``-th message of the agent's own chain goes full, so a server that lost the
+chain (a restart) is back in step within that many rounds.
 """
 
 from __future__ import annotations
@@ -16,7 +19,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from cpslam.protocol.quant import dequantise_rows, quantise_rows
+from cpslam.protocol.quant import add_delta, dequantise_rows, quantise_rows
 
 __all__ = ["DecoderBase", "SubmapMirror", "encode_features"]
 
@@ -91,32 +94,74 @@ class SubmapMirror:
 
 
 class DecoderBase:
-    """The group decoder an agent last loaded, and deltas of local weights against it."""
+    """The weights the server agreed on last, and deltas of local weights against them.
 
-    def __init__(self) -> None:
+    Args:
+        full_every: every this many messages answered against the agent's own weights, one
+            goes full (>= 1; 1 never sends an own delta).
+    """
+
+    def __init__(self, full_every: int = 10) -> None:
+        if full_every < 1:
+            raise ValueError(f"DecoderBase: full_every must be >= 1, got {full_every}")
+        self.full_every = full_every
         self.group_id: str | None = None
         self.round = 0
         self.tensors: dict[str, np.ndarray] = {}
+        self.own_seq: int | None = None  # acknowledged own message the server holds
+        self.own: dict[str, np.ndarray] = {}
+        self._sent: tuple[int, dict[str, np.ndarray]] | None = None  # waiting for its ack
+        self._chain = 0
 
     def set(self, group_id: str, round: int, tensors: dict[str, np.ndarray]) -> None:
         """The agent loaded `group_id`'s shared decoder of `round`."""
         self.group_id, self.round = group_id, int(round)
         self.tensors = {k: np.asarray(v, np.float32).copy() for k, v in tensors.items()}
 
-    def delta_fields(self, group_id: str, weights: dict[str, np.ndarray]) -> dict[str, Any]:
-        """`DecoderWeights` fields for `weights`: an int8 delta against the base when it is of
-        `group_id` and has the same tensors, else the full float32 weights."""
-        usable = (
-            self.group_id == group_id
-            and self.round >= 1
-            and set(self.tensors) == set(weights)
-            and all(self.tensors[k].shape == weights[k].shape for k in weights)
-        )
-        if not usable:
-            return {"tensors": {k: np.asarray(v, np.float32) for k, v in weights.items()}}
-        q, scales = {}, {}
-        for name, value in weights.items():
-            q[name], scales[name] = quantise_rows(
-                np.asarray(value, np.float32) - self.tensors[name]
+    def fields(self, group_id: str, weights: dict[str, np.ndarray]) -> dict[str, Any]:
+        """`DecoderWeights` fields for `weights`: an int8 delta against `group_id`'s loaded
+        decoder, else against the own weights the server holds, else the full weights."""
+        weights = {k: np.asarray(v, np.float32) for k, v in weights.items()}
+        if self.group_id == group_id and self.round >= 1 and _fits(self.tensors, weights):
+            return {"base_round": self.round, **_delta(weights, self.tensors)}
+        if (
+            self.own_seq is not None
+            and self._chain % self.full_every != 0
+            and _fits(self.own, weights)
+        ):
+            return {"base_seq": self.own_seq, **_delta(weights, self.own)}
+        return {"tensors": weights}
+
+    def sent(self, seq: int, fields: dict[str, Any]) -> None:
+        """The message of `seq` carried `fields` (its weights become the own base once
+        acknowledged)."""
+        if "tensors" in fields:
+            held = fields["tensors"]
+        else:  # what the server rebuilds: the base plus the dequantised delta
+            base = self.tensors if "base_round" in fields else self.own
+            held = add_delta(
+                base,
+                {
+                    k: dequantise_rows(q, fields["tensor_scales"][k])
+                    for k, q in fields["tensors_int8"].items()
+                },
             )
-        return {"base_round": self.round, "tensors_int8": q, "tensor_scales": scales}
+        self._sent = (seq, held)
+        self._chain += 1
+
+    def acked(self, seq: int) -> None:
+        """The server acknowledged every message up to `seq`."""
+        if self._sent is not None and self._sent[0] <= seq:
+            self.own_seq, self.own = self._sent
+            self._sent = None
+
+
+def _fits(base: dict[str, np.ndarray], weights: dict[str, np.ndarray]) -> bool:
+    return set(base) == set(weights) and all(base[k].shape == weights[k].shape for k in weights)
+
+
+def _delta(weights: dict[str, np.ndarray], base: dict[str, np.ndarray]) -> dict[str, Any]:
+    q, scales = {}, {}
+    for name, value in weights.items():
+        q[name], scales[name] = quantise_rows(value - base[name])
+    return {"tensors_int8": q, "tensor_scales": scales}

@@ -182,6 +182,7 @@ class AgentLink:
         if ack.agent_id != self.agent_id:
             return 0
         self.acked = max(self.acked, int(ack.seq))
+        self.decoder_base.acked(self.acked)
         covered = [s for s in self.outbox if s <= self.acked]
         for s in covered:
             del self.outbox[s]
@@ -242,11 +243,12 @@ class AgentLink:
     def _decoder_weights(self) -> DecoderWeights:
         tensors = {k: v.detach().cpu().numpy().astype(np.float32)
                    for k, v in self.odometry.decoders.state_dict().items()}
-        fields = (self.decoder_base.delta_fields(self.group_id, tensors) if self.decoder_delta
+        fields = (self.decoder_base.fields(self.group_id, tensors) if self.decoder_delta
                   else {"tensors": tensors})
-        msg = DecoderWeights(agent_id=self.agent_id, seq=0, group_id=self.group_id,
+        msg = DecoderWeights(agent_id=self.agent_id, seq=self._seq, group_id=self.group_id,
                              round=self.round, n_samples=self._samples, **fields)
         self._mappings, self._samples = 0, 0
+        self.decoder_base.sent(self._seq, fields)
         return self._stamp(msg)
 
     # ------------------------------------------------------------------------- incoming

@@ -201,8 +201,10 @@ class DecoderWeights(Message):
     """An agent's local decoder weights for one federated round.
 
     With `base_round` set the tensors are the difference to the group's shared decoder of that
-    round (group_id's `GroupDecoder`), which the agent had loaded; without, the weights
-    themselves. They travel as float32 (`tensors`) or as int8 with one scale per row
+    round (group_id's `GroupDecoder`), which the agent had loaded; with `base_seq` the
+    difference to the weights the server holds from this agent's acknowledged
+    `DecoderWeights` of that seq (while no shared decoder exists); without either, the
+    weights themselves. They travel as float32 (`tensors`) or as int8 with one scale per row
     (`tensors_int8`, `tensor_scales`); `values` gives float32 either way.
     """
 
@@ -219,7 +221,10 @@ class DecoderWeights(Message):
     n_samples: Count
     """Number of training rays behind these weights (the averaging weight)."""
     base_round: Count | None = None
-    """Round of group_id's shared decoder the tensors are a delta against; None: full weights."""
+    """Round of group_id's shared decoder the tensors are a delta against; None: not that."""
+    base_seq: Seq | None = None
+    """Seq of this agent's earlier decoder_weights the tensors are a delta against (the
+    weights the server holds from it); None: not that. At most one of base_round, base_seq."""
     tensors: Tensors | None = None
     """Parameters (or deltas) by name (torch state_dict keys), each float32 of any shape."""
     tensors_int8: Int8Tensors | None = None
@@ -244,6 +249,10 @@ class DecoderWeights(Message):
                                      f"expected {rows}")
                 if (scale < 0).any():
                     raise ValueError(f"tensor_scales.{name}: must be >= 0")
+        if self.base_round is not None and self.base_seq is not None:
+            raise ValueError("base_round/base_seq: at most one base")
+        if self.base_seq is not None and self.base_seq >= self.seq:
+            raise ValueError(f"base_seq: must be an earlier message than seq {self.seq}")
         if self.base_round is not None and self.base_round < 1:
             raise ValueError("base_round: shared decoders start at round 1")
         return self

@@ -18,6 +18,7 @@ from cpslam.protocol.errors import ProtocolError
 
 __all__ = [
     "ZSTD_MAGIC",
+    "add_delta",
     "compress",
     "decompress",
     "dequantise_rows",
@@ -53,6 +54,15 @@ def dequantise_rows(q: np.ndarray, scale: np.ndarray) -> np.ndarray:
             f"got shape {list(scale.shape)}"
         )
     return (rows * scale.astype(np.float32)[:, None]).reshape(q.shape)
+
+
+def add_delta(base: dict[str, np.ndarray], delta: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """float32 ``base + delta`` by name: the one sum both ends of a decoder delta compute, so
+    the sender knows bit for bit what the receiver holds."""
+    return {
+        k: (np.asarray(base[k], np.float32) + np.asarray(v, np.float32)).astype(np.float32)
+        for k, v in delta.items()
+    }
 
 
 def is_compressed(data: bytes) -> bool:

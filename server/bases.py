@@ -14,7 +14,9 @@ from collections.abc import Mapping
 
 import numpy as np
 
-__all__ = ["DecoderBases"]
+from cpslam.protocol.quant import add_delta
+
+__all__ = ["DecoderBases", "apply_delta"]
 
 
 class DecoderBases:
@@ -53,14 +55,20 @@ class DecoderBases:
                 f"decoder delta against {group_id}#{round}, a group decoder this server "
                 "does not hold"
             )
-        if set(base) != set(delta):
-            return f"decoder delta names other tensors than the base {group_id}#{round}"
-        for name, value in delta.items():
-            if value.shape != base[name].shape:
-                return (
-                    f"decoder delta tensor {name} has shape {list(value.shape)}, the base "
-                    f"{list(base[name].shape)}"
-                )
-        return {
-            k: (base[k] + np.asarray(v, np.float32)).astype(np.float32) for k, v in delta.items()
-        }
+        return apply_delta(base, delta, f"{group_id}#{round}")
+
+
+def apply_delta(
+    base: Mapping[str, np.ndarray], delta: Mapping[str, np.ndarray], what: str
+) -> dict[str, np.ndarray] | str:
+    """`base` plus `delta` (float32, `add_delta`), or why they do not fit (`what` names the
+    base)."""
+    if set(base) != set(delta):
+        return f"decoder delta names other tensors than the base {what}"
+    for name, value in delta.items():
+        if value.shape != base[name].shape:
+            return (
+                f"decoder delta tensor {name} has shape {list(value.shape)}, the base "
+                f"{list(base[name].shape)}"
+            )
+    return add_delta(dict(base), dict(delta))

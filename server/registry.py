@@ -24,7 +24,7 @@ import torch
 from cpslam.common.field import NeuralPointMap
 from cpslam.common.geometry import compose, invert
 from cpslam.protocol import Ack, DecoderWeights, FramePoses, KeyframeMsg, Message, SubmapDelta
-from cpslam.server.bases import DecoderBases
+from cpslam.server.bases import DecoderBases, apply_delta
 from cpslam.server.points import PointTable
 
 __all__ = ["AgentRecord", "KeyframeRecord", "Registry"]
@@ -67,6 +67,8 @@ class AgentRecord:
     decoder_samples: int = 0
     decoder_round: int = 0
     decoder_group: str = ""
+    decoder_seq: int = -1
+    """Seq of the message `decoder` came from (the base of the agent's next own delta)."""
     alignments: dict[int, np.ndarray] = field(default_factory=lambda: {0: np.eye(4)})
     """Epoch -> T_group_agent the agent was told at that epoch (0: identity)."""
     seq_floor: int = -1
@@ -272,8 +274,13 @@ class Registry:
         tensors = msg.values()
         if msg.base_round is not None:
             tensors = self.decoder_bases.apply(msg.group_id, msg.base_round, tensors)
-            if isinstance(tensors, str):
-                return tensors
+        elif msg.base_seq is not None:
+            if rec.decoder is None or rec.decoder_seq != msg.base_seq:
+                return (f"decoder delta against the agent's seq {msg.base_seq}, the server "
+                        f"holds its weights of seq {rec.decoder_seq}")
+            tensors = apply_delta(rec.decoder, tensors, f"seq {msg.base_seq}")
+        if isinstance(tensors, str):
+            return tensors
         if self.decoder_shapes is not None:
             names = set(tensors)
             if names != set(self.decoder_shapes):
@@ -288,6 +295,7 @@ class Registry:
         rec.decoder_samples = int(msg.n_samples)
         rec.decoder_round = int(msg.round)
         rec.decoder_group = str(msg.group_id)
+        rec.decoder_seq = int(msg.seq)
         self.new_decoders.append((rec.agent_id, msg))
         return ""
 

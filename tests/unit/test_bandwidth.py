@@ -152,11 +152,11 @@ def test_decoder_delta_agent_to_server_round_trip():
         for k, v in group.items()
     }
     agent = DecoderBase()
-    assert "tensors" in agent.delta_fields("g", local)  # no base yet: full weights
+    assert "tensors" in agent.fields("g", local)  # no base yet: full weights
     agent.set("g", 3, group)
-    fields = agent.delta_fields("g", local)
+    fields = agent.fields("g", local)
     assert fields["base_round"] == 3 and "tensors" not in fields
-    assert "tensors" in agent.delta_fields("other", local)  # base of another group
+    assert "tensors" in agent.fields("other", local)  # base of another group
     msg = P.decode(
         P.encode(
             P.DecoderWeights(agent_id="a", seq=0, group_id="g", round=3, n_samples=5, **fields)
@@ -169,7 +169,7 @@ def test_decoder_delta_agent_to_server_round_trip():
         step = np.abs(value - group[name]).max() / 254
         np.testing.assert_allclose(rebuilt[name], value, atol=step * 1.01 + 1e-7)
     full = P.DecoderWeights(
-        agent_id="a", seq=0, group_id="g", round=3, n_samples=5, **agent.delta_fields("g", local)
+        agent_id="a", seq=0, group_id="g", round=3, n_samples=5, **agent.fields("g", local)
     )
     assert (
         len(P.encode(msg, zstd_level=0))
@@ -197,7 +197,7 @@ def test_registry_applies_decoder_deltas_and_drops_an_unknown_base():
     base.set("g", 2, group)
     reg = Registry(4, decoder_shapes={k: v.shape for k, v in group.items()})
     msg = P.DecoderWeights(
-        agent_id="a", seq=0, group_id="g", round=2, n_samples=5, **base.delta_fields("g", local)
+        agent_id="a", seq=0, group_id="g", round=2, n_samples=5, **base.fields("g", local)
     )
     reg.handle(msg)  # the server never published g#2
     assert any("g#2, a group decoder this server does not hold" in r for r in reg.dropped)
@@ -263,7 +263,7 @@ def test_decoder_from_a_quantised_delta_renders_like_the_unquantised_one():
     }
     agent = DecoderBase()
     agent.set("g", 1, {k: v.numpy() for k, v in base.items()})
-    fields = agent.delta_fields("g", {k: v.numpy() for k, v in exact.state_dict().items()})
+    fields = agent.fields("g", {k: v.numpy() for k, v in exact.state_dict().items()})
     msg = P.decode(
         P.encode(
             P.DecoderWeights(agent_id="a", seq=0, group_id="g", round=1, n_samples=1, **fields)
@@ -329,3 +329,30 @@ def test_bytes_per_sensor_second_per_key_and_agent():
         "bytes_per_sensor_s"
         not in traffic_per_agent("s", traffic, 1.0)["a0"]["from_agent"]["submap"]
     )
+
+
+def test_own_decoder_chain_follows_acks_and_goes_full_every_n():
+    """Before any shared decoder the deltas refer to the agent's own acknowledged weights;
+    the server rebuilds them bit for bit as the agent predicts, refuses a chain it lost, and
+    a full message every `full_every` puts it back in step."""
+    agent, reg = DecoderBase(full_every=3), Registry(4)
+    w = _weights(1)
+    sent = []
+    for seq in range(7):
+        w = {k: v + 0.01 * (seq + 1) for k, v in w.items()}
+        fields = agent.fields("a", w)
+        msg = P.DecoderWeights(agent_id="a", seq=seq, group_id="a", round=0, n_samples=1,
+                               **fields)
+        agent.sent(seq, fields)
+        sent.append(msg)
+        if seq == 4:  # the server restarts and loses the chain
+            reg = Registry(4)
+        reg.handle(P.decode(P.encode(msg)))
+        agent.acked(seq)
+        if seq not in (4, 5):  # deltas against seqs 3 and 4, refused; 6: full again
+            np.testing.assert_array_equal(reg.agents["a"].decoder["l0.weight"],
+                                          agent.own["l0.weight"])
+    kinds = ["full" if m.tensors is not None else m.base_seq for m in sent]
+    assert kinds == ["full", 0, 1, "full", 3, 4, "full"]
+    assert sum("the server holds its weights of seq -1" in r for r in reg.dropped) == 2
+    assert reg.agents["a"].decoder_seq == 6
