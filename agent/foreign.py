@@ -23,9 +23,13 @@ def merge_foreign(pm: Any, key: int, block: ForeignPoints, receiver: str) -> int
     """Add (or replace) the block's points under agent key `key` of the map `pm`, after its
     keyframe poses and removals; returns how many were added (`receiver` names the log)."""
     if block.point_ids.size and block.features.shape[1] != pm.feature_dim:
-        logger.warning("agent %s: foreign points of %s have %d features, the map %d; "
-                       "dropped", receiver, block.source_agent_id,
-                       block.features.shape[1], pm.feature_dim)
+        logger.warning(
+            "agent %s: foreign points of %s have %d features, the map %d; dropped",
+            receiver,
+            block.source_agent_id,
+            block.features.shape[1],
+            pm.feature_dim,
+        )
         return 0
     if len(block.kf_ids):
         pm.set_keyframe_poses(block.kf_ids.astype(np.int64), block.T_group_kf, key)
@@ -36,19 +40,35 @@ def merge_foreign(pm: Any, key: int, block: ForeignPoints, receiver: str) -> int
     pm.remove(torch.from_numpy(block.point_ids), key)
     anchored = np.array([pm.has_keyframe(int(k), key) for k in block.anchor_kf_ids], bool)
     if not anchored.all():
-        logger.warning("agent %s: %d foreign points of %s anchored to unknown keyframes; "
-                       "dropped", receiver, int((~anchored).sum()), block.source_agent_id)
+        logger.warning(
+            "agent %s: %d foreign points of %s anchored to unknown keyframes; dropped",
+            receiver,
+            int((~anchored).sum()),
+            block.source_agent_id,
+        )
     n = int(anchored.sum())
     if n:
-        _append_points(pm, key, block.point_ids[anchored],
-                       block.anchor_kf_ids[anchored].astype(np.int64),
-                       block.xyz_local[anchored], block.features[anchored],
-                       block.colors[anchored])
+        _append_points(
+            pm,
+            key,
+            block.point_ids[anchored],
+            block.anchor_kf_ids[anchored].astype(np.int64),
+            block.xyz_local[anchored],
+            block.features[anchored],
+            block.colors[anchored],
+        )
     return n
 
 
-def _append_points(pm: Any, agent: int, ids: np.ndarray, anchors: np.ndarray,
-                   xyz_local: np.ndarray, features: np.ndarray, colors: np.ndarray) -> None:
+def _append_points(
+    pm: Any,
+    agent: int,
+    ids: np.ndarray,
+    anchors: np.ndarray,
+    xyz_local: np.ndarray,
+    features: np.ndarray,
+    colors: np.ndarray,
+) -> None:
     """Append points given in their anchors' frames (no grid filter: the server only sends
     points in cells the receiver's own points leave free)."""
     state = pm.state_dict()

@@ -341,8 +341,7 @@ def test_own_decoder_chain_follows_acks_and_goes_full_every_n():
     for seq in range(7):
         w = {k: v + 0.01 * (seq + 1) for k, v in w.items()}
         fields = agent.fields("a", w)
-        msg = P.DecoderWeights(agent_id="a", seq=seq, group_id="a", round=0, n_samples=1,
-                               **fields)
+        msg = P.DecoderWeights(agent_id="a", seq=seq, group_id="a", round=0, n_samples=1, **fields)
         agent.sent(seq, fields)
         sent.append(msg)
         if seq == 4:  # the server restarts and loses the chain
@@ -350,8 +349,9 @@ def test_own_decoder_chain_follows_acks_and_goes_full_every_n():
         reg.handle(P.decode(P.encode(msg)))
         agent.acked(seq)
         if seq not in (4, 5):  # deltas against seqs 3 and 4, refused; 6: full again
-            np.testing.assert_array_equal(reg.agents["a"].decoder["l0.weight"],
-                                          agent.own["l0.weight"])
+            np.testing.assert_array_equal(
+                reg.agents["a"].decoder["l0.weight"], agent.own["l0.weight"]
+            )
     kinds = ["full" if m.tensors is not None else m.base_seq for m in sent]
     assert kinds == ["full", 0, 1, "full", 3, 4, "full"]
     assert sum("the server holds its weights of seq -1" in r for r in reg.dropped) == 2
