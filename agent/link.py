@@ -150,7 +150,8 @@ class AgentLink:
             self._samples += result.map_steps * pixels
             self._mappings += 1
             self._submap_mappings += 1
-            if self._submap_mappings >= self.submap_every_mappings:
+            # the first mapping call's map goes at once: the server aligns and fuses with it
+            if self._submap_mappings >= self.submap_every_mappings or not len(self.mirror.ids):
                 delta = self._submap_delta()
                 if delta is not None:
                     out.append(delta)

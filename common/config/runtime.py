@@ -117,10 +117,10 @@ class TransportConfig(Section):
 class LinkConfig(Section):
     """What an agent sends the server and how compactly (docs/protocol.md, wire-size budget)."""
 
-    submap_every_mappings: PositiveInt = 4
-    """Send a sub-map delta every this many mapping calls (and at the end of the stream); the
-    points changed in between travel once."""
-    feature_threshold: NonNegativeFloat = 0.05
+    submap_every_mappings: PositiveInt = 2
+    """Send a sub-map delta every this many mapping calls (the first call's at once, and at
+    the end of the stream); the points changed in between travel once."""
+    feature_threshold: NonNegativeFloat = 0.1
     """A known point is resent when one of its features moved by more than this fraction of
     the largest feature magnitude of the copy the server has; 0 resends every change."""
     feature_codec: Literal["float16", "int8"] = "int8"
