@@ -118,16 +118,13 @@ class LinkConfig(Section):
     """What an agent sends the server and how compactly (docs/protocol.md, wire-size budget)."""
 
     submap_every_mappings: PositiveInt = 2
-    """Send a sub-map delta every this many mapping calls (the first call's at once, and at
-    the end of the stream); the points changed in between travel once."""
+    """Send a sub-map delta every this many mapping calls (the first call's at once)."""
     feature_threshold: NonNegativeFloat = 0.1
-    """A known point is resent when one of its features moved by more than this fraction of
-    the largest feature magnitude of the copy the server has; 0 resends every change."""
+    """Resend a known point when a feature moved by this fraction of its largest (0: any)."""
     feature_codec: Literal["float16", "int8"] = "int8"
     """Sub-map features on the wire: float16, or int8 with one scale per point."""
     decoder_delta: bool = True
-    """Send decoder weights as an int8 delta against the group decoder the agent last loaded
-    (full float32 weights while it has none)."""
+    """Send decoder weights as int8 deltas against the last weights the server agreed on."""
     zstd_level: int = Field(default=3, ge=0, le=22)
     """zstd level of the agent's messages of 1 kB or more; 0 sends them uncompressed."""
 
