@@ -356,3 +356,14 @@ def test_own_decoder_chain_follows_acks_and_goes_full_every_n():
     assert kinds == ["full", 0, 1, "full", 3, 4, "full"]
     assert sum("the server holds its weights of seq -1" in r for r in reg.dropped) == 2
     assert reg.agents["a"].decoder_seq == 6
+
+
+def test_agent_reports_bytes_per_sensor_second_per_key():
+    from types import SimpleNamespace
+
+    from cpslam.agent.node import AgentNode
+
+    node = SimpleNamespace(results=[SimpleNamespace(timestamp=t) for t in (0.0, 0.5, 1.0, 1.5)])
+    stats = {"sent": {"cpslam/s/agent/a/submap": {"messages": 3, "bytes": 8000}}}
+    assert AgentNode.sent_per_sensor_s(node, stats) == {"cpslam/s/agent/a/submap": 4000.0}
+    assert AgentNode.sent_per_sensor_s(SimpleNamespace(results=[]), stats) == {}
