@@ -141,8 +141,9 @@ def run_variant(preset: str, frames: str, sets: list[str], seed: int, views: int
         "summary": {
             "bytes_per_sensor_s_mean": round(float(np.mean(rates)), 1) if rates else None,
             "joint_ate_cm": round(100 * joint, 3) if joint is not None else None,
-        "origin_ate_cm": {a: round(100 * v, 3)
-                          for a, v in (ev.get("global_origin_rmse_m") or {}).items()},
+            "origin_ate_cm": {
+                a: round(100 * v, 3) for a, v in (ev.get("global_origin_rmse_m") or {}).items()
+            },
             "merge_time_s": ev.get("merge_time_s"),
             "merged": ev.get("merged"),
         },
