@@ -165,6 +165,8 @@ def run_networked(cfg: CpslamConfig, seq: RGBDSequence, agent_id: str, run_dir: 
                 acked = _wait_acked(node, presence, joins_seen, ack_timeout_s, stop)
         finally:
             node.write_outputs(extra={"bus": bus.stats(),
+                                      "sent_bytes_per_sensor_s": node.sent_per_sensor_s(
+                                          bus.stats()),
                                       "unacknowledged": len(node.link.outbox),
                                       "resent": node.link.outbox.resent,
                                       "ignored_acks": node.link.outbox.ignored_acks,

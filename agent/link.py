@@ -3,7 +3,10 @@
 `AgentLink` sits next to an `Odometry`. After every ``odometry.step`` it turns what happened
 into protocol messages (keyframes with descriptors, sub-map deltas of the agent's OWN points,
 batched frame poses, decoder weights for federated rounds), numbers them with one counter
-(``seq`` from 0) and keeps each in an outbox until an `Ack` covers it. Between frames it
+(``seq`` from 0) and keeps each in an outbox until an `Ack` covers it. Sub-map deltas go
+every ``submap_every_mappings`` mapping calls with only the points that moved enough since
+the server's copy, decoder weights as a delta against the last loaded group decoder
+(`cpslam.agent.deltas`). Between frames it
 applies what the server pushed:
 
 - `ServerUpdate`: the whole local world moves into the group frame (keyframe poses in the
@@ -25,11 +28,13 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
+from cpslam.agent.deltas import DecoderBase, SubmapMirror, encode_features
+from cpslam.agent.foreign import merge_foreign
 from cpslam.agent.keyframes import DEPTH_SCALE
 from cpslam.agent.outbox import Outbox
 from cpslam.common.bounds import tensor_mismatch
@@ -80,6 +85,10 @@ class AgentLink:
         outbox: where sent messages wait for their acks (default: `Outbox()`'s bounds).
         update_window: a `ServerUpdate` more than this many seqs above the last one applied
             is ignored with a warning (forged or corrupt: it would mask every real one).
+        submap_every_mappings: a sub-map delta goes every this many mapping calls.
+        feature_threshold, feature_codec: which known points are resent, and how features
+            travel (`SubmapMirror`).
+        decoder_delta: send decoder weights as an int8 delta against the last group decoder.
     """
 
     def __init__(
@@ -95,10 +104,15 @@ class AgentLink:
         incarnation: int = 0,
         outbox: Outbox | None = None,
         update_window: int = 4096,
+        submap_every_mappings: int = 1,
+        feature_threshold: float = 0.0,
+        feature_codec: str = "float16",
+        decoder_delta: bool = False,
     ) -> None:
-        if frames_every < 1 or round_every_mappings < 1:
-            raise ValueError(f"AgentLink: frames_every and round_every_mappings must be >= 1, "
-                             f"got {frames_every}, {round_every_mappings}")
+        if min(frames_every, round_every_mappings, submap_every_mappings) < 1:
+            raise ValueError(f"AgentLink: frames_every, round_every_mappings and "
+                             f"submap_every_mappings must be >= 1, got {frames_every}, "
+                             f"{round_every_mappings}, {submap_every_mappings}")
         self.agent_id = agent_id
         self.odometry = odometry
         self.describe = describe
@@ -120,8 +134,12 @@ class AgentLink:
         self._seq = 0
         self._frame_kf: list[int] = []  # keyframe each trajectory entry is expressed against
         self._pending_frames: list[tuple[int, float, int, np.ndarray]] = []
-        self._sent_ids = np.zeros(0, np.int64)  # sorted
-        self._sent_features = np.zeros((0, odometry.point_map.feature_dim), np.float16)
+        self.mirror = SubmapMirror(odometry.point_map.feature_dim, feature_threshold,
+                                   feature_codec)  # type: ignore[arg-type]
+        self.submap_every_mappings = submap_every_mappings
+        self.decoder_delta = decoder_delta
+        self.decoder_base = DecoderBase()
+        self._submap_mappings = 0
         self._mappings = 0
         self._samples = 0
         self._decoders_waiting: dict[str, GroupDecoder] = {}
@@ -143,9 +161,12 @@ class AgentLink:
             pixels = self.odometry.n_pixels_first if first else self.odometry.n_pixels
             self._samples += result.map_steps * pixels
             self._mappings += 1
-            delta = self._submap_delta()
-            if delta is not None:
-                out.append(delta)
+            self._submap_mappings += 1
+            # the first mapping call's map goes at once: the server aligns and fuses with it
+            if self._submap_mappings >= self.submap_every_mappings or not len(self.mirror.ids):
+                delta = self._submap_delta()
+                if delta is not None:
+                    out.append(delta)
             if self.federation and self._mappings >= self.round_every_mappings:
                 out.append(self._decoder_weights())
         if result.is_keyframe or len(self._pending_frames) >= self.frames_every:
@@ -173,7 +194,9 @@ class AgentLink:
         """Forget every message the ack covers (`Outbox.on_ack`); returns how many left."""
         if ack.agent_id != self.agent_id:
             return 0
-        return self.outbox.on_ack(ack, self._seq, self.incarnation)
+        n = self.outbox.on_ack(ack, self._seq, self.incarnation)
+        self.decoder_base.acked(self.acked)
+        return n
 
     @property
     def acked(self) -> int:
@@ -210,41 +233,37 @@ class AgentLink:
             n_points=len(kf.point_ids)))
 
     def _submap_delta(self) -> SubmapDelta | None:
-        """Own points that are new or whose (float16) features changed since the last delta,
-        and own points that disappeared."""
+        """Own points that are new or moved enough since the server's copy, and own points
+        that disappeared."""
+        self._submap_mappings = 0
         pm = self.odometry.point_map
         rows = (pm.agent_id == self.own).nonzero(as_tuple=True)[0]
         ids = pm.point_id[rows].cpu().numpy()
         order = np.argsort(ids)
         ids, rows = ids[order], rows[torch.from_numpy(order).to(rows.device)]
-        feats = pm.features.detach()[rows].cpu().numpy().astype(np.float16)
-        known = np.zeros(len(ids), bool)
-        pos = np.zeros(len(ids), np.int64)
-        if len(self._sent_ids) and len(ids):
-            pos = np.minimum(np.searchsorted(self._sent_ids, ids), len(self._sent_ids) - 1)
-            known = self._sent_ids[pos] == ids
-        changed = ~known
-        if known.any():
-            changed[known] = (self._sent_features[pos[known]] != feats[known]).any(axis=1)
-        removed = np.setdiff1d(self._sent_ids, ids)
-        self._sent_ids, self._sent_features = ids, feats
-        if not changed.any() and not len(removed):
+        feats = pm.features.detach()[rows].cpu().numpy().astype(np.float32)
+        send, removed = self.mirror.select(ids, feats)
+        if not send.any() and not len(removed):
             return None
-        sel = torch.from_numpy(np.nonzero(changed)[0]).to(rows.device)
-        r = rows[sel]
+        fields, received = encode_features(feats[send], self.mirror.codec)
+        self.mirror.commit(ids, feats, send, received)
+        r = rows[torch.from_numpy(np.nonzero(send)[0]).to(rows.device)]
         return self._stamp(SubmapDelta(
-            agent_id=self.agent_id, seq=0, point_ids=ids[changed],
+            agent_id=self.agent_id, seq=0, point_ids=ids[send],
             anchor_kf_ids=pm.anchor_kf[r].cpu().numpy().astype(np.int32),
             xyz_local=pm.xyz_local[r].detach().cpu().numpy().astype(np.float32),
-            features=feats[changed], colors=pm.color[r].cpu().numpy().astype(np.uint8),
-            removed_ids=removed.astype(np.int64)))
+            colors=pm.color[r].cpu().numpy().astype(np.uint8),
+            removed_ids=removed.astype(np.int64), **fields))
 
     def _decoder_weights(self) -> DecoderWeights:
         tensors = {k: v.detach().cpu().numpy().astype(np.float32)
                    for k, v in self.odometry.decoders.state_dict().items()}
-        msg = DecoderWeights(agent_id=self.agent_id, seq=0, group_id=self.group_id,
-                             round=self.round, n_samples=self._samples, tensors=tensors)
+        fields = (self.decoder_base.fields(self.group_id, tensors) if self.decoder_delta
+                  else {"tensors": tensors})
+        msg = DecoderWeights(agent_id=self.agent_id, seq=self._seq, group_id=self.group_id,
+                             round=self.round, n_samples=self._samples, **fields)
         self._mappings, self._samples = 0, 0
+        self.decoder_base.sent(self._seq, fields)
         return self._stamp(msg)
 
     # ------------------------------------------------------------------------- incoming
@@ -316,6 +335,7 @@ class AgentLink:
             state.decoders.load_state_dict({k: torch.as_tensor(v, device=device)
                                             for k, v in msg.tensors.items()})
         self.round = int(msg.round)
+        self.decoder_base.set(msg.group_id, msg.round, msg.tensors)
         self._mappings, self._samples = 0, 0
         self.odometry.mark_fused()
         self.stats["decoders"] += 1
@@ -382,33 +402,10 @@ class AgentLink:
 
     def _merge_foreign(self, block: ForeignPoints) -> int:
         """Add (or replace) another member's points; returns how many were added."""
-        pm = self.odometry.point_map
-        if block.point_ids.size and block.features.shape[1] != pm.feature_dim:
-            logger.warning("agent %s: foreign points of %s have %d features, the map %d; "
-                           "dropped", self.agent_id, block.source_agent_id,
-                           block.features.shape[1], pm.feature_dim)
-            return 0
         key = self.foreign_index.setdefault(
             block.source_agent_id, max([self.own, *self.foreign_index.values()]) + 1)
-        if len(block.kf_ids):
-            pm.set_keyframe_poses(block.kf_ids.astype(np.int64), block.T_group_kf, key)
-        if block.removed_ids.size:
-            pm.remove(torch.from_numpy(block.removed_ids), key)
-        if not block.point_ids.size:
-            return 0
-        pm.remove(torch.from_numpy(block.point_ids), key)
-        anchored = np.array([pm.has_keyframe(int(k), key) for k in block.anchor_kf_ids], bool)
-        if not anchored.all():
-            logger.warning("agent %s: %d foreign points of %s anchored to unknown keyframes; "
-                           "dropped", self.agent_id, int((~anchored).sum()),
-                           block.source_agent_id)
-        n = int(anchored.sum())
-        if n:
-            _append_points(pm, key, block.point_ids[anchored],
-                           block.anchor_kf_ids[anchored].astype(np.int64),
-                           block.xyz_local[anchored], block.features[anchored],
-                           block.colors[anchored])
-            self.stats["foreign_points"] += n
+        n = merge_foreign(self.odometry.point_map, key, block, self.agent_id)
+        self.stats["foreign_points"] += n
         return n
 
 
@@ -420,26 +417,3 @@ def _rigid(T: np.ndarray) -> np.ndarray:
     T[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
     T[3] = (0.0, 0.0, 0.0, 1.0)
     return T
-
-
-def _append_points(pm: Any, agent: int, ids: np.ndarray, anchors: np.ndarray,
-                   xyz_local: np.ndarray, features: np.ndarray, colors: np.ndarray) -> None:
-    """Append points given in their anchors' frames (no grid filter: the server only sends
-    points in cells the receiver's own points leave free)."""
-    state = pm.state_dict()
-    n = len(ids)
-    extra = {
-        "anchor_kf": torch.from_numpy(anchors.astype(np.int64)),
-        "xyz_local": torch.from_numpy(xyz_local.astype(np.float32)),
-        "features": torch.from_numpy(features.astype(np.float32)),
-        "agent_id": torch.full((n,), agent, dtype=torch.int32),
-        "point_id": torch.from_numpy(ids.astype(np.int64)),
-        "color": torch.from_numpy(colors.astype(np.uint8)),
-    }
-    for name, value in extra.items():
-        state[name] = torch.cat((state[name], value))
-    nxt = {int(a): int(v) for a, v in state["next_point_id"].tolist()}
-    nxt[agent] = max(nxt.get(agent, 0), int(ids.max()) + 1)
-    state["next_point_id"] = torch.tensor(sorted(nxt.items()), dtype=torch.int64).reshape(-1, 2)
-    pm.load_state_dict(state, source="foreign points")
-

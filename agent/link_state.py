@@ -31,6 +31,7 @@ _SCALARS = (
     "round",
     "group_id",
     "_mappings",
+    "_submap_mappings",
     "_samples",
 )
 
@@ -44,8 +45,8 @@ def link_state(link: AgentLink) -> dict:
         T_group_agent=torch.from_numpy(np.asarray(link.T_group_agent, np.float64).copy()),
         foreign_index=dict(link.foreign_index),
         frame_kf=torch.tensor(link._frame_kf, dtype=torch.int64),
-        sent_ids=torch.from_numpy(link._sent_ids.astype(np.int64)),
-        sent_features=torch.from_numpy(link._sent_features.astype(np.float16)),
+        sent_ids=torch.from_numpy(link.mirror.ids.astype(np.int64)),
+        sent_features=torch.from_numpy(link.mirror.features.astype(np.float32)),
         outbox=[
             torch.frombuffer(bytearray(protocol.encode(m)), dtype=torch.uint8)
             for m in link.unacked()
@@ -70,8 +71,8 @@ def load_link_state(link: AgentLink, state: dict) -> None:
     link.T_group_agent = state["T_group_agent"].cpu().numpy().copy()
     link.foreign_index = {str(k): int(v) for k, v in state["foreign_index"].items()}
     link._frame_kf = [int(k) for k in state["frame_kf"].tolist()]
-    link._sent_ids = state["sent_ids"].cpu().numpy().copy()
-    link._sent_features = state["sent_features"].cpu().numpy().copy()
+    link.mirror.ids = state["sent_ids"].cpu().numpy().copy()
+    link.mirror.features = state["sent_features"].cpu().numpy().astype(np.float32)
     link._pending_frames = [
         (int(i), float(t), int(k), T.cpu().numpy().copy()) for i, t, k, T in state["pending_frames"]
     ]

@@ -30,6 +30,7 @@ from cpslam.agent.odometry import FrameResult, Odometry
 from cpslam.agent.outbox import Outbox
 from cpslam.agent.standalone import processing_frames, write_agent_outputs
 from cpslam.common.rundir import write_json
+from cpslam.common.trajectory import sensor_seconds
 from cpslam.protocol import (
     Ack,
     ErrorReply,
@@ -96,7 +97,11 @@ class AgentNode:
         self.link = AgentLink(agent_id, self.odometry, describe, frames_every=frames_every,
                               round_every_mappings=cfg.federation.round_every_mappings,
                               federation=cfg.federation.enabled, incarnation=self.incarnation,
-                              outbox=outbox, update_window=t.update_window)
+                              outbox=outbox, update_window=t.update_window,
+                              submap_every_mappings=cfg.link.submap_every_mappings,
+                              feature_threshold=cfg.link.feature_threshold,
+                              feature_codec=cfg.link.feature_codec,
+                              decoder_delta=cfg.link.decoder_delta)
         self.refused: str | None = None
         """The server's reason when it refused this incarnation (the agent must stop)."""
         self.results: list[FrameResult] = []
@@ -154,7 +159,7 @@ class AgentNode:
         for msg in messages:
             key = keys.agent_topic(self.session, self.agent_id, topic[msg.type])
             try:
-                self.bus.publish(key, protocol.encode(msg))
+                self.bus.publish(key, protocol.encode(msg, self.cfg.link.zstd_level))
             except ProtocolError as exc:
                 logger.error("agent %s: could not send %s seq %d: %s", self.agent_id, msg.type,
                              getattr(msg, "seq", -1), exc)
@@ -252,6 +257,14 @@ class AgentNode:
                     "unacknowledged)", self.agent_id, self.incarnation, start,
                     self.link.next_seq, len(self.link.outbox))
         return start
+
+    def sent_per_sensor_s(self, stats: dict[str, dict]) -> dict[str, float]:
+        """Bytes published per second of sensor time (the processed frames' span), per key;
+        empty before two frames."""
+        sensor = sensor_seconds(r.timestamp for r in self.results)
+        if not sensor:
+            return {}
+        return {k: row["bytes"] / sensor for k, row in stats.get("sent", {}).items()}
 
     def write_outputs(self, extra: dict[str, Any] | None = None) -> Path:
         """``run_dir/agent_<id>/`` as a standalone run writes it, plus ``link.pt`` (for

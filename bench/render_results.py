@@ -233,8 +233,46 @@ def _flood(report: dict) -> str:
             "timed under tracemalloc).\n\n" + _table(rows) + "\n")
 
 
+def _bandwidth(report: dict) -> str:
+    variants = report["variants"]
+    types = sorted({t for v in variants.values() for a in v["agents"].values()
+                    for t in a.get("by_type", {})})
+    rows = [("variant", "agent", "all", *types,
+             "server copy PSNR dB", "depth diff cm")]
+    for name, v in variants.items():
+        for aid, a in sorted(v["agents"].items()):
+            copy = a.get("server_copy", {})
+            rows.append((name, aid, f"{a['bytes_per_sensor_s'] / 1e3:.1f}",
+                         *[f"{a['by_type'][t]['bytes_per_sensor_s'] / 1e3:.1f}"
+                           if t in a["by_type"] else "-" for t in types],
+                         copy.get("psnr_server_vs_local_db", "-"),
+                         copy.get("depth_diff_cm", "-")))
+    summary = [("variant", "mean kB/sensor-s", "joint ATE cm", "origin ATE cm per agent",
+                "merged", "wall s")]
+    for name, v in variants.items():
+        s = v["summary"]
+        origin = s.get("origin_ate_cm") or {}
+        summary.append((name, f"{s['bytes_per_sensor_s_mean'] / 1e3:.1f}",
+                        s.get("joint_ate_cm", "-"),
+                        " / ".join(f"{origin[a]}" for a in sorted(origin)) or "-",
+                        ", ".join(a for a, m in sorted((s.get("merged") or {}).items()) if m)
+                        or "none", v.get("wall_s", "-")))
+    ratio = report.get("ratio_after_over_before", {})
+    note = ""
+    if ratio:
+        note = (f"\nAfter / before: bytes per sensor-second x{ratio['bytes_per_sensor_s']}, "
+                f"joint ATE x{ratio['joint_ate']}.\n")
+    return (f"Preset `{report['preset']}`, frames `{report['frames']}` of each agent's "
+            "300-frame apartment walk; bytes the server received per second of each agent's "
+            "sensor time (kB per sensor-second), in all and by message type. *server copy*: "
+            "the agent's final map rendered at its keyframes with the features the server "
+            "holds against its own.\n\n"
+            + _table(rows) + "\n\n" + _table(summary) + "\n" + note)
+
+
 RENDERERS = {"odometry": _odometry, "loop_edges": _loop_edges, "collab": _collab,
-             "rerun_overhead": _rerun_overhead, "persist": _persist, "flood": _flood}
+             "rerun_overhead": _rerun_overhead, "persist": _persist, "flood": _flood,
+             "bandwidth": _bandwidth}
 
 
 if __name__ == "__main__":

@@ -7,6 +7,7 @@ are readable by evo and by the TUM RGB-D benchmark tools.
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -15,7 +16,14 @@ import numpy as np
 from cpslam.common.durable import write_text_atomic
 from cpslam.common.geometry import is_rigid, pose_from_tq, pose_to_tq
 
-__all__ = ["TUM_HEADER", "Trajectory", "TrajectoryFormatError", "read_tum", "write_tum"]
+__all__ = [
+    "TUM_HEADER",
+    "Trajectory",
+    "TrajectoryFormatError",
+    "read_tum",
+    "sensor_seconds",
+    "write_tum",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -24,6 +32,15 @@ TUM_HEADER = "# timestamp tx ty tz qx qy qz qw"
 # Accepted deviation of a stored quaternion's norm from 1; files written with few decimals
 # are a little off, a larger deviation means the line is not a rotation at all.
 _QUAT_NORM_TOL = 1e-3
+
+
+def sensor_seconds(stamps: Iterable[float]) -> float | None:
+    """Sensor time (s) the frames with these stamps cover: first to last plus one median
+    frame period (100 frames of a 10 Hz stream are 10 s); None for fewer than two frames."""
+    t = np.unique(np.asarray(list(stamps), np.float64))
+    if len(t) < 2:
+        return None
+    return float(t[-1] - t[0] + np.median(np.diff(t)))
 
 
 class TrajectoryFormatError(ValueError):

@@ -27,6 +27,7 @@ __all__ = [
 ]
 
 DTYPES: tuple[str, ...] = (
+    "int8",
     "uint8",
     "uint16",
     "int32",

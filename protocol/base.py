@@ -19,12 +19,15 @@ __all__ = [
     "Pose",
     "Poses",
     "Tensors",
+    "Int8Tensors",
+    "Scales",
     "Message",
     "WireModel",
 ]
 
-PROTOCOL_VERSION = 1
-"""Version every message carries; a decoder rejects any other."""
+PROTOCOL_VERSION = 2
+"""Version every message carries; a decoder rejects any other. 2: zstd-framed payloads,
+int8 sub-map features, decoder weights as deltas against a group round."""
 
 Id = Annotated[str, AfterValidator(lambda v: check_id(v, "id"))]
 """Agent, group or session id: 1-64 chars of [A-Za-z0-9_-] (usable as a key chunk)."""
@@ -43,6 +46,16 @@ Tensors = Annotated[
     Field(min_length=1, max_length=MAX_TENSORS),
 ]
 """Named float32 tensors (a torch state_dict flattened to numpy), at most 256 names."""
+Int8Tensors = Annotated[
+    dict[TensorName, Annotated[np.ndarray, ArraySpec("int8", None)]],
+    Field(min_length=1, max_length=MAX_TENSORS),
+]
+"""Named int8 tensors (quantised parameters, see `cpslam.protocol.quant`)."""
+Scales = Annotated[
+    dict[TensorName, Annotated[np.ndarray, ArraySpec("float32", ("R",), finite=True)]],
+    Field(min_length=1, max_length=MAX_TENSORS),
+]
+"""Per name the float32 scale of each row (axis 0; one for a 0-d or 1-d tensor)."""
 
 
 class WireModel(BaseModel):

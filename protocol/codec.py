@@ -1,7 +1,8 @@
 """encode / decode: messages to msgpack bytes and back, with size caps and one error type.
 
 Wire layout of a message: one msgpack map ``{"type": str, "version": int, <field>: <value>, …}``
-(keys in any order, no duplicates, nothing after the map). Arrays are maps
+(keys in any order, no duplicates, nothing after the map), either as is or, when that is 1 kB or
+more and compression is on, as one zstd frame of it (see `cpslam.protocol.quant`). Arrays are maps
 ``{"dtype", "shape", "data"}`` (see `cpslam.protocol.arrays`), images maps
 ``{"codec", "data"}`` (see `cpslam.protocol.images`), optional fields nil when absent.
 """
@@ -25,9 +26,12 @@ from cpslam.protocol.messages import (
     KeyframeMsg,
     SubmapDelta,
 )
+from cpslam.protocol.quant import compress, decompress, is_compressed
 from cpslam.protocol.updates import Ack, Control, ErrorReply, GroupDecoder, ServerUpdate, Status
 
 __all__ = [
+    "COMPRESS_MIN_BYTES",
+    "DEFAULT_ZSTD_LEVEL",
     "MESSAGE_TYPES",
     "MAX_MESSAGE_BYTES",
     "decode",
@@ -62,6 +66,12 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
 MAX_MESSAGE_BYTES = max(cls.max_bytes for cls in MESSAGE_TYPES.values())
 """Largest size any message may have; longer input is refused before parsing."""
 
+COMPRESS_MIN_BYTES = 1024
+"""Smaller messages go uncompressed (zstd's frame overhead eats the gain)."""
+
+DEFAULT_ZSTD_LEVEL = 3
+"""zstd level of `encode` unless told otherwise (0 = no compression)."""
+
 # Limits on the msgpack structure itself. Our messages hold few, small containers (arrays
 # are single bin objects), so these bound the Python objects hostile input can create.
 _MAX_TOP_KEYS = 64
@@ -78,8 +88,10 @@ def max_bytes(msg_type: str | type[Message]) -> int:
     return MESSAGE_TYPES[name].max_bytes
 
 
-def encode(msg: Message) -> bytes:
-    """msgpack bytes of `msg`; raises ProtocolError if it exceeds its type's size cap."""
+def encode(msg: Message, zstd_level: int = DEFAULT_ZSTD_LEVEL) -> bytes:
+    """msgpack bytes of `msg`, zstd-compressed at `zstd_level` (0: never) when that is shorter
+    and the message has at least `COMPRESS_MIN_BYTES`; raises ProtocolError if the msgpack form
+    exceeds its type's size cap."""
     if not isinstance(msg, Message) or type(msg).type_name() not in MESSAGE_TYPES:
         raise ProtocolError(f"encode: expected a protocol message, got {type(msg).__name__}")
     name = type(msg).type_name()
@@ -99,6 +111,10 @@ def encode(msg: Message) -> bytes:
             "split it",
             name,
         )
+    if zstd_level > 0 and len(data) >= COMPRESS_MIN_BYTES:
+        packed = compress(data, zstd_level)
+        if len(packed) < len(data):
+            return packed
     return data
 
 
@@ -141,11 +157,14 @@ def _decode(data: Any, expected: Any) -> Message:
         raise ProtocolError(
             f"decode: payload of {len(data)} bytes exceeds the largest cap {MAX_MESSAGE_BYTES}"
         )
+    if is_compressed(data):
+        data = decompress(data, MAX_MESSAGE_BYTES)
     name, version = _peek(data)
     if version != PROTOCOL_VERSION:
         raise ProtocolError(
             f"decode: {name!r:.60} message has protocol version {version!r:.20}, "
-            f"this build speaks version {PROTOCOL_VERSION}",
+            f"this build speaks version {PROTOCOL_VERSION} only (peers of different versions "
+            "cannot talk: upgrade both)",
             name,
         )
     cls = MESSAGE_TYPES.get(name)

@@ -13,8 +13,20 @@ from pydantic import Field, model_serializer, model_validator
 from pydantic_core import core_schema
 
 from cpslam.protocol.arrays import ArraySpec
-from cpslam.protocol.base import Count, Id, KfId, Message, Pose, Poses, Seq, Tensors
+from cpslam.protocol.base import (
+    Count,
+    Id,
+    Int8Tensors,
+    KfId,
+    Message,
+    Pose,
+    Poses,
+    Scales,
+    Seq,
+    Tensors,
+)
 from cpslam.protocol.images import image_from_wire, image_to_wire
+from cpslam.protocol.quant import dequantise_rows
 
 __all__ = [
     "KeyframeMsg",
@@ -35,6 +47,8 @@ Ids = Annotated[np.ndarray, ArraySpec("int64", ("N",))]
 KfIds = Annotated[np.ndarray, ArraySpec("int32", ("N",))]
 Xyz = Annotated[np.ndarray, ArraySpec("float32", ("N", 3), finite=True)]
 Features = Annotated[np.ndarray, ArraySpec("float16", ("N", "F"), finite=True)]
+Int8Features = Annotated[np.ndarray, ArraySpec("int8", ("N", "F"))]
+RowScales = Annotated[np.ndarray, ArraySpec("float32", ("N",), finite=True)]
 Colors = Annotated[np.ndarray, ArraySpec("uint8", ("N", 3))]
 RemovedIds = Annotated[np.ndarray, ArraySpec("int64", ("M",))]
 
@@ -120,7 +134,9 @@ class SubmapDelta(Message):
 
     A point is identified by (agent_id, point id); a later delta carrying the same id replaces
     it. Positions are local to the anchor keyframe, so a keyframe pose correction moves its
-    points without resending them.
+    points without resending them. Features travel either as float16 (`features`) or as int8
+    with one scale per point (`features_int8` times `feature_scales`); `feature_values` gives
+    them as float32 either way.
     """
 
     max_bytes = 64 * MB
@@ -137,8 +153,12 @@ class SubmapDelta(Message):
     """Keyframe each point is anchored to (int32 [N])."""
     xyz_local: Xyz
     """Point positions in the anchor keyframe's camera frame (float32 [N, 3], m)."""
-    features: Features
-    """Learned point features (float16 [N, F], F <= 1024)."""
+    features: Features | None = None
+    """Learned point features (float16 [N, F], F <= 1024); None when sent as int8."""
+    features_int8: Int8Features | None = None
+    """Quantised features (int8 [N, F], |q| <= 127); None when sent as float16."""
+    feature_scales: RowScales | None = None
+    """Scale of each row of features_int8 (float32 [N], >= 0): feature = q * scale."""
     colors: Colors
     """Point colours, RGB (uint8 [N, 3])."""
     removed_ids: RemovedIds
@@ -146,19 +166,51 @@ class SubmapDelta(Message):
 
     @model_validator(mode="after")
     def _check(self) -> SubmapDelta:
+        if (self.features is None) == (self.features_int8 is None):
+            raise ValueError("features/features_int8: exactly one must be given")
+        if (self.features_int8 is None) != (self.feature_scales is None):
+            raise ValueError("feature_scales: required with features_int8, and only with it")
+        if self.feature_scales is not None:
+            n = self.point_ids.shape[0]
+            if self.feature_scales.shape[0] != n:
+                raise ValueError(f"feature_scales: has {self.feature_scales.shape[0]} rows, "
+                                 f"point_ids has {n}")
+            if (self.feature_scales < 0).any():
+                raise ValueError("feature_scales: must be >= 0")
+        feats = self.features if self.features is not None else self.features_int8
         check_points(
             self.point_ids,
             self.anchor_kf_ids,
             self.xyz_local,
-            self.features,
+            feats,
             self.colors,
             self.removed_ids,
         )
         return self
 
+    @property
+    def feature_dim(self) -> int:
+        """Width F of the features."""
+        feats = self.features if self.features is not None else self.features_int8
+        return int(feats.shape[1])
+
+    def feature_values(self) -> np.ndarray:
+        """The features as float32 [N, F], dequantised when they travelled as int8."""
+        if self.features is not None:
+            return self.features.astype(np.float32)
+        return dequantise_rows(self.features_int8, self.feature_scales)
+
 
 class DecoderWeights(Message):
-    """An agent's local decoder weights for one federated round."""
+    """An agent's local decoder weights for one federated round.
+
+    With `base_round` set the tensors are the difference to the group's shared decoder of that
+    round (group_id's `GroupDecoder`), which the agent had loaded; with `base_seq` the
+    difference to the weights the server holds from this agent's acknowledged
+    `DecoderWeights` of that seq (while no shared decoder exists); without either, the
+    weights themselves. They travel as float32 (`tensors`) or as int8 with one scale per row
+    (`tensors_int8`, `tensor_scales`); `values` gives float32 either way.
+    """
 
     max_bytes = 16 * MB
     type: Literal["decoder_weights"] = "decoder_weights"
@@ -174,8 +226,49 @@ class DecoderWeights(Message):
     """Federated round these weights answer (0 before any shared decoder arrived)."""
     n_samples: Count
     """Number of training rays behind these weights (the averaging weight)."""
-    tensors: Tensors
-    """Parameters by name (torch state_dict keys), each float32 of any shape."""
+    base_round: Count | None = None
+    """Round of group_id's shared decoder the tensors are a delta against; None: not that."""
+    base_seq: Seq | None = None
+    """Seq of this agent's earlier decoder_weights the tensors are a delta against (the
+    weights the server holds from it); None: not that. At most one of base_round, base_seq."""
+    tensors: Tensors | None = None
+    """Parameters (or deltas) by name (torch state_dict keys), each float32 of any shape."""
+    tensors_int8: Int8Tensors | None = None
+    """The same quantised: int8 of any shape, row i (axis 0) times tensor_scales[name][i]."""
+    tensor_scales: Scales | None = None
+    """Per name of tensors_int8 the scale of each row (float32 [R], >= 0; R = 1 for 0-d/1-d)."""
+
+    @model_validator(mode="after")
+    def _check(self) -> DecoderWeights:
+        if (self.tensors is None) == (self.tensors_int8 is None):
+            raise ValueError("tensors/tensors_int8: exactly one must be given")
+        if (self.tensors_int8 is None) != (self.tensor_scales is None):
+            raise ValueError("tensor_scales: required with tensors_int8, and only with it")
+        if self.tensors_int8 is not None:
+            if set(self.tensor_scales) != set(self.tensors_int8):
+                raise ValueError("tensor_scales: must name the same tensors as tensors_int8")
+            for name, q in self.tensors_int8.items():
+                rows = q.shape[0] if q.ndim >= 2 else 1
+                scale = self.tensor_scales[name]
+                if scale.shape[0] != rows:
+                    raise ValueError(f"tensor_scales.{name}: has {scale.shape[0]} rows, "
+                                     f"expected {rows}")
+                if (scale < 0).any():
+                    raise ValueError(f"tensor_scales.{name}: must be >= 0")
+        if self.base_round is not None and self.base_seq is not None:
+            raise ValueError("base_round/base_seq: at most one base")
+        if self.base_seq is not None and self.base_seq >= self.seq:
+            raise ValueError(f"base_seq: must be an earlier message than seq {self.seq}")
+        if self.base_round is not None and self.base_round < 1:
+            raise ValueError("base_round: shared decoders start at round 1")
+        return self
+
+    def values(self) -> dict[str, np.ndarray]:
+        """The tensors (or deltas) as float32 by name, dequantised when sent as int8."""
+        if self.tensors is not None:
+            return {k: np.asarray(v, np.float32) for k, v in self.tensors.items()}
+        return {k: dequantise_rows(q, self.tensor_scales[k])
+                for k, q in self.tensors_int8.items()}
 
 
 class FramePoses(Message):

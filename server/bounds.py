@@ -14,6 +14,8 @@ from typing import Any
 
 import msgpack
 
+from cpslam.protocol.base import PROTOCOL_VERSION
+
 __all__ = ["fit_status", "status_size"]
 
 # Tables of the summary whose rows are ranked by one number (the biggest are kept).
@@ -21,10 +23,12 @@ _RANK = {"agents": "messages"}
 
 
 def status_size(summary: dict[str, Any]) -> int:
-    """Encoded bytes of a `Status` reply carrying `summary` (no cap applied)."""
+    """Encoded bytes of a `Status` reply carrying `summary` before compression (what the
+    receiver's size cap applies to; no cap applied here)."""
     return len(
         msgpack.packb(
-            {"type": "status", "version": 1, "stamp": 0.0, "summary": summary}, use_bin_type=True
+            {"type": "status", "version": PROTOCOL_VERSION, "stamp": 0.0, "summary": summary},
+            use_bin_type=True,
         )
     )
 

@@ -342,5 +342,7 @@ class Federator:
         return views
 
     def _group_decoder(self, group: Group, contributors: list[str]) -> GroupDecoder:
+        # agents answer the next round with a delta against exactly these weights
+        self.registry.decoder_bases.add(group.group_id, group.round, group.decoder)
         return GroupDecoder(group_id=group.group_id, round=group.round, members=contributors,
                             n_samples=group.decoder_samples, tensors=group.decoder)

@@ -48,7 +48,13 @@ from cpslam.server.backend import Backend, Outgoing
 from cpslam.server.bounds import fit_status, status_size
 from cpslam.server.export import export_run
 from cpslam.server.persist import AckGate, StateWriter, detach
-from cpslam.server.traffic import DecoderFanout, KeyCounter, traffic_per_agent, traffic_per_group
+from cpslam.server.traffic import (
+    DecoderFanout,
+    KeyCounter,
+    sensor_seconds,
+    traffic_per_agent,
+    traffic_per_group,
+)
 
 if TYPE_CHECKING:
     from cpslam.common.bus import Bus
@@ -308,8 +314,10 @@ class ServerNode:
                 self.finalised.metrics["bus"] = {
                     "dropped": dict(self.dropped), "traffic": traffic,
                     "received_by_key": received,
-                    "per_agent": traffic_per_agent(self.session, by_key, uptime,
-                                                   self._fanout.table()),
+                    "per_agent": traffic_per_agent(
+                        self.session, by_key, uptime, self._fanout.table(),
+                        {a: sensor_seconds(e[2] for e in rec.frames.values())
+                         for a, rec in self.backend.registry.agents.items()}),
                     "per_group": traffic_per_group(self.session, traffic["sent"], uptime)}
                 self.finalised.metrics["process"] = {
                     "peak_rss_mb": peak_rss_mb(), "uptime_s": time.monotonic() - self._t_start}

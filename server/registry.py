@@ -49,6 +49,7 @@ from cpslam.protocol import (
     SubmapDelta,
 )
 from cpslam.protocol.updates import MAX_ACK_RANGES
+from cpslam.server.bases import DecoderBases, apply_delta
 from cpslam.server.points import PointTable
 
 if TYPE_CHECKING:
@@ -96,6 +97,8 @@ class AgentRecord:
     decoder_samples: int = 0
     decoder_round: int = 0
     decoder_group: str = ""
+    decoder_seq: int = -1
+    """Seq of the message `decoder` came from (the base of the agent's next own delta)."""
     alignments: dict[int, np.ndarray] = field(default_factory=lambda: {0: np.eye(4)})
     """Epoch -> T_group_agent the agent was told at that epoch (0: identity)."""
     seq_floor: int = -1
@@ -213,6 +216,8 @@ class Registry:
         self.new_keyframes: list[tuple[str, int]] = []
         """(agent, kf) accepted since the back end last took them."""
         self.new_decoders: list[tuple[str, DecoderWeights]] = []
+        self.decoder_bases = DecoderBases()
+        """Published group decoders that agents' decoder deltas refer to."""
         self.dropped = CappedCounter(self.max_counter_keys)
         """Reason -> count of dropped messages (or parts), over all agents."""
         self.refused_agents = 0
@@ -349,7 +354,7 @@ class Registry:
         return ""
 
     def _submap(self, rec: AgentRecord, msg: SubmapDelta) -> str:
-        f = msg.features.shape[1]
+        f = msg.feature_dim
         if msg.point_ids.size and f != self.feature_dim:
             return f"field features has width {f}, expected {self.feature_dim} (field config)"
         m = msg.removed_ids.size
@@ -367,7 +372,8 @@ class Registry:
             if forgotten:
                 self._drop(rec, "tombstones forgotten (limits.max_tombstones)", count=forgotten)
         known = np.isin(msg.anchor_kf_ids, np.fromiter(rec.keyframes, np.int64, len(rec.keyframes)))
-        columns = (msg.point_ids, msg.anchor_kf_ids, msg.xyz_local, msg.features, msg.colors)
+        columns = (msg.point_ids, msg.anchor_kf_ids, msg.xyz_local,
+                   msg.feature_values().astype(np.float16), msg.colors)
         rec.points.upsert(*(c[known] for c in columns), seq)
         rec.pending_points.upsert(*(c[~known] for c in columns), seq)
         overflow = len(rec.pending_points) - self.max_pending_points
@@ -390,18 +396,29 @@ class Registry:
         return ""
 
     def _decoder(self, rec: AgentRecord, msg: DecoderWeights) -> str:
+        tensors = msg.values()
+        if msg.base_round is not None:
+            tensors = self.decoder_bases.apply(msg.group_id, msg.base_round, tensors)
+        elif msg.base_seq is not None:
+            if rec.decoder is None or rec.decoder_seq != msg.base_seq:
+                return (f"decoder delta against the agent's seq {msg.base_seq}, the server "
+                        f"holds its weights of seq {rec.decoder_seq}")
+            tensors = apply_delta(rec.decoder, tensors, f"seq {msg.base_seq}")
+        if isinstance(tensors, str):
+            return tensors
         if self.decoder_shapes is not None:
-            reason = tensor_mismatch(msg.tensors, self.decoder_shapes)
+            reason = tensor_mismatch(tensors, self.decoder_shapes)
             if reason:
                 return reason
         n = int(msg.n_samples)
         if self.max_federated_samples is not None and n > self.max_federated_samples:
             return (f"field n_samples is {n}, expected at most {self.max_federated_samples} "
                     "(limits.max_federated_samples)")
-        rec.decoder = {k: np.asarray(v, np.float32) for k, v in msg.tensors.items()}
+        rec.decoder = tensors
         rec.decoder_samples = int(msg.n_samples)
         rec.decoder_round = int(msg.round)
         rec.decoder_group = str(msg.group_id)
+        rec.decoder_seq = int(msg.seq)
         self.new_decoders.append((rec.agent_id, msg))
         return ""
 

@@ -4,7 +4,9 @@ The bus counts subscriptions under the subscribed expression (``agent/*/*`` for 
 agents publish), so `KeyCounter` counts what the server takes off that queue under each
 concrete key, and `DecoderFanout` what each agent is sent on the group decoder keys. The
 functions here turn those counts and `Bus.stats()` into the ``bus`` section of the server's
-``metrics.json`` (documented in docs/daemons.md).
+``metrics.json`` (documented in docs/daemons.md). Rates come per second of the server's uptime
+and, where the agents' frame stamps are known, per second of sensor time (`sensor_seconds`):
+bandwidth that does not depend on how fast this machine processes frames.
 """
 
 from __future__ import annotations
@@ -12,9 +14,11 @@ from __future__ import annotations
 from collections.abc import Iterable, Mapping
 
 from cpslam.common.bounds import OTHER
+from cpslam.common.trajectory import sensor_seconds
 from cpslam.protocol import keys
 
-__all__ = ["DecoderFanout", "KeyCounter", "traffic_per_agent", "traffic_per_group"]
+__all__ = ["DecoderFanout", "KeyCounter", "sensor_seconds", "traffic_per_agent",
+           "traffic_per_group"]  # sensor_seconds: re-exported for the node
 
 Table = dict[str, dict[str, int]]
 """{key or agent: {"messages": int, "bytes": int}}"""
@@ -57,7 +61,8 @@ class DecoderFanout(KeyCounter):
 
 
 def traffic_per_agent(session: str, traffic: Mapping[str, Mapping], seconds: float,
-                      decoders: Table | None = None) -> dict[str, dict]:
+                      decoders: Table | None = None,
+                      sensor_s: Mapping[str, float | None] | None = None) -> dict[str, dict]:
     """Per agent: ``from_agent`` and ``to_agent`` tables of messages, bytes and bytes/s per
     topic, their totals ``<direction>_bytes`` and ``<direction>_bytes_per_s``.
 
@@ -65,7 +70,9 @@ def traffic_per_agent(session: str, traffic: Mapping[str, Mapping], seconds: flo
     `keys.key_subject` (wildcard expressions and keys of no agent are skipped). Keyframe images
     count both ways under topic ``image`` (the request to the agent, the reply from it).
     `decoders` (`DecoderFanout.table()`) adds topic ``group_decoder`` to ``to_agent``. Rates
-    are over `seconds` (the server's uptime).
+    are over `seconds` (the server's uptime); with `sensor_s` (agent -> sensor seconds of
+    the frames it sent) every cell and total also gets ``bytes_per_sensor_s`` and the entry
+    ``sensor_s``.
     """
     out: dict[str, dict] = {}
 
@@ -84,13 +91,20 @@ def traffic_per_agent(session: str, traffic: Mapping[str, Mapping], seconds: flo
     for agent, row in (decoders or {}).items():
         add(agent, "to_agent", "group_decoder", row)
     per_s = 1.0 / max(seconds, 1e-9)
-    for entry in out.values():
+    for agent, entry in out.items():
+        sensor = (sensor_s or {}).get(agent)
+        if sensor:
+            entry["sensor_s"] = sensor
         for direction in ("from_agent", "to_agent"):
             for cell in entry[direction].values():
                 cell["bytes_per_s"] = cell["bytes"] * per_s
+                if sensor:
+                    cell["bytes_per_sensor_s"] = cell["bytes"] / sensor
             total = sum(c["bytes"] for c in entry[direction].values())
             entry[f"{direction}_bytes"] = total
             entry[f"{direction}_bytes_per_s"] = total * per_s
+            if sensor:
+                entry[f"{direction}_bytes_per_sensor_s"] = total / sensor
     return out
 
 

@@ -7,6 +7,8 @@ from pathlib import Path
 from typing import Literal
 
 from pydantic import (
+    Field,
+    NonNegativeFloat,
     NonNegativeInt,
     PositiveFloat,
     PositiveInt,
@@ -16,7 +18,7 @@ from pydantic import (
 
 from cpslam.common.config.base import Section
 
-__all__ = ["RunConfig", "TransportConfig"]
+__all__ = ["LinkConfig", "RunConfig", "TransportConfig"]
 
 
 _ENDPOINT = re.compile(
@@ -120,6 +122,21 @@ class TransportConfig(Section):
             if port and int(port.group(1)) > 65535:
                 raise ValueError(f"endpoint {endpoint!r}: port must be at most 65535")
         return value
+
+
+class LinkConfig(Section):
+    """What an agent sends the server and how compactly (docs/protocol.md, wire-size budget)."""
+
+    submap_every_mappings: PositiveInt = 2
+    """Send a sub-map delta every this many mapping calls (the first call's at once)."""
+    feature_threshold: NonNegativeFloat = 0.1
+    """Resend a known point when a feature moved by this fraction of its largest (0: any)."""
+    feature_codec: Literal["float16", "int8"] = "int8"
+    """Sub-map features on the wire: float16, or int8 with one scale per point."""
+    decoder_delta: bool = True
+    """Send decoder weights as int8 deltas against the last weights the server agreed on."""
+    zstd_level: int = Field(default=3, ge=0, le=22)
+    """zstd level of the agent's messages of 1 kB or more; 0 sends them uncompressed."""
 
 
 class RunConfig(Section):

@@ -17,7 +17,7 @@ from cpslam.common.config.collab import (
     RefinementConfig,
 )
 from cpslam.common.config.limits import LimitsConfig
-from cpslam.common.config.runtime import RunConfig, TransportConfig
+from cpslam.common.config.runtime import LinkConfig, RunConfig, TransportConfig
 from cpslam.common.config.slam import (
     CameraConfig,
     FieldConfig,
@@ -34,6 +34,7 @@ __all__ = [
     "FieldConfig",
     "KeyframesConfig",
     "LimitsConfig",
+    "LinkConfig",
     "LoopConfig",
     "MappingConfig",
     "PlaceRecognitionConfig",
@@ -75,5 +76,7 @@ class CpslamConfig(Section):
     """The message bus between agents and server."""
     limits: LimitsConfig = LimitsConfig()
     """Caps on peer-keyed state and plausibility bounds of agents' messages."""
+    link: LinkConfig = LinkConfig()
+    """What agents send the server and how compactly: sub-map deltas, decoders, compression."""
     run: RunConfig = RunConfig()
     """Process-level settings: output, device, seeds, logging."""

@@ -107,22 +107,24 @@ def _traffic_table(traffic: dict[str, Any]) -> Any:
                   title="traffic per agent and key expression (server's counters)",
                   caption="to server: agent/<id>/<topic> (image: keyframe image replies); "
                           "from server: server/agent/<id>/<topic>, image requests, every "
-                          "group's decoder; kB/s over the server's uptime")
-    for col in ("agent", "direction", "topic", "messages", "MB", "kB/s"):
+                          "group's decoder; kB/s over the server's uptime, kB/sensor-s per "
+                          "second of the agent's frames")
+    for col in ("agent", "direction", "topic", "messages", "MB", "kB/s", "kB/sensor-s"):
         table.add_column(col, justify="left" if col in ("agent", "direction", "topic")
                          else "right", no_wrap=True)
     for a, entry in traffic["agents"].items():
         for direction, label in (("from_agent", "to server"), ("to_agent", "from server")):
             for topic, cell in sorted(entry.get(direction, {}).items()):
-                rate = cell.get("bytes_per_s")
+                rate, sensor = cell.get("bytes_per_s"), cell.get("bytes_per_sensor_s")
                 table.add_row(a, label, topic, str(cell.get("messages", 0)),
-                              _mb(cell.get("bytes")), _num(rate and rate / 1e3, "{:.2f}"))
+                              _mb(cell.get("bytes")), _num(rate and rate / 1e3, "{:.2f}"),
+                              _num(sensor and sensor / 1e3, "{:.2f}"))
     if traffic.get("groups"):
         table.add_section()
         for g, cell in traffic["groups"].items():
             rate = cell.get("bytes_per_s")
             table.add_row(f"group {g}", "published", "decoder", str(cell.get("messages", 0)),
-                          _mb(cell.get("bytes")), _num(rate and rate / 1e3, "{:.2f}"))
+                          _mb(cell.get("bytes")), _num(rate and rate / 1e3, "{:.2f}"), "-")
     return table
 
 

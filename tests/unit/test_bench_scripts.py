@@ -180,3 +180,19 @@ def test_gpu_report_rows_runs_failures_and_the_paper() -> None:
     assert rows[2]["status"] == "killed at the hard limit"
     assert rows[3]["status"] == "error: boom"
     assert report.paper_row()["track s/f"] == 0.30
+
+
+def test_bandwidth_table_reads_a_report() -> None:
+    render = _bench_module("render_results")
+    agent = {"bytes_per_sensor_s": 34_000.0,
+             "by_type": {"submap": {"bytes_per_sensor_s": 13_000.0}},
+             "server_copy": {"psnr_server_vs_local_db": 55.0, "depth_diff_cm": 0.01}}
+    summary = {"bytes_per_sensor_s_mean": 34_000.0, "joint_ate_cm": 0.2,
+               "origin_ate_cm": {"0": 0.3, "1": 0.4}, "merged": {"0": True, "1": True}}
+    report = {"preset": "cpu", "frames": "0:300:6",
+              "variants": {"after": {"agents": {"0": agent}, "summary": summary, "wall_s": 9}},
+              "ratio_after_over_before": {"bytes_per_sensor_s": 0.34, "joint_ate": 1.01}}
+    text = render._bandwidth(report)
+    assert "| after | 0 | 34.0 | 13.0 | 55.0 | 0.01 |" in text
+    assert "| after | 34.0 | 0.2 | 0.3 / 0.4 | 0, 1 | 9 |" in text
+    assert "x0.34" in text and "x1.01" in text

@@ -143,7 +143,8 @@ def test_report_step_shows_traffic_and_memory_of_every_process(tmp_path: Path,
     write_tum(run / "trajectories" / "agent_0_global.tum", np.arange(3.0), poses)
     (run / "agent_0").mkdir()
     (run / "agent_0" / "metrics.json").write_text(json.dumps({"peak_cpu_memory_mb": 321.0}))
-    cell = {"messages": 4, "bytes": 4_000_000, "bytes_per_s": 2_000_000.0}
+    cell = {"messages": 4, "bytes": 4_000_000, "bytes_per_s": 2_000_000.0,
+            "bytes_per_sensor_s": 40_000.0}
     (run / "metrics.json").write_text(json.dumps({
         "bus": {"per_agent": {"0": {"from_agent": {"submap": cell}, "to_agent": {},
                                     "from_agent_bytes": 4_000_000, "to_agent_bytes": 0}}},
@@ -157,4 +158,5 @@ def test_report_step_shows_traffic_and_memory_of_every_process(tmp_path: Path,
     assert json.loads((run / "report.json").read_text())["memory_mb"] == memory
     out = capsys.readouterr().out
     assert "submap" in out and "2000.00" in out and "4.00" in out  # kB/s and MB
+    assert "kB/sensor-s" in out and "40.00" in out
     assert "peak memory (MB): server 654, agent 0 321, demo" in out

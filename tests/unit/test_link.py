@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from cpslam import protocol
+from cpslam.agent.deltas import SubmapMirror
 from cpslam.agent.link import AgentLink
 from cpslam.agent.odometry import Odometry
 from cpslam.common.camera import Intrinsics
@@ -45,12 +46,12 @@ def _describe(rgb: np.ndarray) -> np.ndarray:
     return d / np.linalg.norm(d)
 
 
-def _link(frames_every: int = 3, rounds: int = 1) -> AgentLink:
+def _link(frames_every: int = 3, rounds: int = 1, **link_args) -> AgentLink:
     cfg = load_config("tiny", overrides=["mapping.iters_first=10", "mapping.iters=3",
                                                 "tracking.iters=3"], env={})
     odometry = Odometry.from_config(cfg, INTR, "cpu", agent_id=0)
     return AgentLink("a0", odometry, _describe, frames_every=frames_every,
-                     round_every_mappings=rounds)
+                     round_every_mappings=rounds, **link_args)
 
 
 def _run(link: AgentLink, start: int, stop: int) -> list[protocol.Message]:
@@ -212,7 +213,7 @@ def test_foreign_points_join_the_map_and_are_never_sent_back() -> None:
     np.testing.assert_allclose(xyz[:, 2], 6.0, atol=1e-5)
     # The next delta carries own points only.
     pm.set_features(rows, pm.features.detach()[rows] + 1.0)
-    link._sent_ids = np.zeros(0, np.int64)  # force a full resend of own points
+    link.mirror = SubmapMirror(pm.feature_dim)  # force a full resend of own points
     delta = link._submap_delta()
     assert len(delta.point_ids) == own
     # A later block removes two of them and moves the keyframe.
@@ -325,3 +326,57 @@ def test_decoders_held_for_other_groups_are_capped() -> None:
                                         tensors=tensors))
     assert len(link._decoders_waiting) == MAX_WAITING_DECODERS
     assert f"g{MAX_WAITING_DECODERS + 9}" in link._decoders_waiting  # the newest kept
+
+
+def test_submap_deltas_coalesce_mapping_calls_and_travel_as_int8() -> None:
+    link = _link(frames_every=100, rounds=100, submap_every_mappings=2, feature_codec="int8",
+                 feature_threshold=0.05)
+    mapped, deltas = [], []
+    for i in range(11):
+        frame = _frame(i)
+        result = link.odometry.step(frame)
+        mapped.append(result.map_steps > 0)
+        deltas.append([m for m in link.after_step(frame, result) if isinstance(m, SubmapDelta)])
+    calls = np.flatnonzero(mapped)
+    assert len(calls) >= 3
+    # the first call's map at once, then a delta after every second mapping call only
+    assert [i for i, d in enumerate(deltas) if d] == calls[0::2].tolist()
+    last = [d for d in deltas if d][-1][0]
+    assert last.features is None and last.features_int8.dtype == np.int8
+    # the mirror holds exactly what the server decodes
+    pos = np.searchsorted(link.mirror.ids, last.point_ids)
+    np.testing.assert_array_equal(link.mirror.features[pos], last.feature_values())
+    # a change below the threshold stays local; above it, the point goes out again
+    link._submap_delta()  # whatever the last mapping call moved
+    pm = link.odometry.point_map
+    pid = int(link.mirror.ids[0])
+    row = int((pm.point_id == pid).nonzero()[0, 0])
+    scale = float(np.abs(link.mirror.features[0]).max())
+    base = pm.features.detach()[row:row + 1].clone()
+    pm.set_features(torch.tensor([row]), base + 0.01 * scale)
+    assert link._submap_delta() is None
+    pm.set_features(torch.tensor([row]), base + 0.2 * scale)
+    assert pid in link._submap_delta().point_ids.tolist()
+    # the end of the stream sends what the coalescing still held back
+    pm.set_features(torch.tensor([row]), base + 0.6 * scale)
+    assert any(isinstance(m, SubmapDelta) for m in link.finish())
+
+
+def test_decoder_weights_are_int8_deltas_against_the_loaded_group_decoder() -> None:
+    link = _link(rounds=1, decoder_delta=True)
+    first = [m for m in _run(link, 0, 1) if isinstance(m, DecoderWeights)][0]
+    assert first.base_round is None and first.tensors is not None  # nothing agreed yet
+    dec = link.odometry.decoders
+    base = {k: v.detach().numpy().copy() + 0.01 for k, v in dec.state_dict().items()}
+    assert link.apply_decoder(GroupDecoder(group_id="a0", round=2, members=["a0", "b1"],
+                                           n_samples=10, tensors=base))
+    weights = [m for m in _run(link, 1, 6) if isinstance(m, DecoderWeights)][-1]
+    assert weights.base_round == 2 and weights.tensors is None
+    local = {k: v.detach().numpy() for k, v in dec.state_dict().items()}
+    for name, delta in weights.values().items():
+        step = np.abs(local[name] - base[name]).max() / 254 + 1e-7
+        np.testing.assert_allclose(base[name] + delta, local[name], atol=step)
+    # another group: no agreed base there yet, so full weights again
+    link.apply_update(_update(link, 1, np.eye(4), group="g2", members=("a0", "b1"), epoch=1))
+    weights = [m for m in _run(link, 6, 11) if isinstance(m, DecoderWeights)][-1]
+    assert weights.group_id == "g2" and weights.base_round is None and weights.tensors

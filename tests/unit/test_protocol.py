@@ -11,13 +11,15 @@ import pytest
 from pydantic import ValidationError
 
 from cpslam import protocol as P
+from cpslam.protocol.quant import compress, decompress, is_compressed
 from cpslam.protocol.samples import random_poses, sample, samples
 
 ALL = samples(seed=0)
+V = P.PROTOCOL_VERSION
 
 
 def _wire(msg: P.Message) -> dict:
-    return msgpack.unpackb(P.encode(msg), raw=False)
+    return msgpack.unpackb(P.encode(msg, zstd_level=0), raw=False)
 
 
 def _pack(obj: dict) -> bytes:
@@ -49,9 +51,11 @@ def test_round_trip_every_type(msg):
     assert back == msg
     assert hash(back) == hash(msg)
     assert P.encoded_size(msg) == len(data) <= P.max_bytes(msg.type_name())
+    if is_compressed(data):
+        data = decompress(data, P.max_bytes(msg.type_name()))
     wire = msgpack.unpackb(data, raw=False)
     assert list(wire)[:2] == ["type", "version"]
-    assert wire["version"] == P.PROTOCOL_VERSION == 1
+    assert wire["version"] == P.PROTOCOL_VERSION == 2
 
 
 def test_decoded_arrays_are_writable_native_copies():
@@ -64,7 +68,7 @@ def test_decoded_arrays_are_writable_native_copies():
 
 def test_round_trip_20_mb_submap_delta():
     msg = sample("submap_delta", seed=1, n_points=220_000, feature_dim=32)
-    data = P.encode(msg)
+    data = P.encode(msg, zstd_level=0)
     assert len(data) > 20_000_000
     back = P.decode(data, expected=P.SubmapDelta)
     assert back == msg
@@ -101,14 +105,14 @@ def test_every_field_has_a_docstring():
     [
         (b"", "empty"),
         (b"\x93\x01\x02\x03", "not a msgpack map"),
-        (_pack({"version": 1, "agent_id": "a", "seq": 1}), "no 'type'"),
+        (_pack({"version": V, "agent_id": "a", "seq": 1}), "no 'type'"),
         (_pack({"type": "ack", "agent_id": "a", "seq": 1}), "no 'version'"),
-        (_pack({"type": "nope", "version": 1}), "unknown message type"),
-        (_pack({"type": 3, "version": 1}), "'type' must be a str"),
+        (_pack({"type": "nope", "version": V}), "unknown message type"),
+        (_pack({"type": 3, "version": V}), "'type' must be a str"),
         (_pack({"type": "ack", "version": "1"}), "'version' must be an int"),
-        (_pack({"type": "ack", "version": 1, "agent_id": "a", "seq": 1}) + b"\x00", "after"),
-        (_pack({"type": "ack", "version": 1, "agent_id": "a", "seq": 1})[:-1], "truncated"),
-        (_pack({"type": "ack", "version": 1, 5: "x"}), "keys must be str"),
+        (_pack({"type": "ack", "version": V, "agent_id": "a", "seq": 1}) + b"\x00", "after"),
+        (_pack({"type": "ack", "version": V, "agent_id": "a", "seq": 1})[:-1], "truncated"),
+        (_pack({"type": "ack", "version": V, 5: "x"}), "keys must be str"),
     ],
 )
 def test_structural_errors(payload, needle):
@@ -116,12 +120,17 @@ def test_structural_errors(payload, needle):
         P.decode(payload)
 
 
-def test_wrong_version_is_named():
-    wire = _wire(sample("keyframe"))
-    wire["version"] = 2
-    with pytest.raises(P.ProtocolError, match="version 2.*speaks version 1") as info:
-        P.decode(_pack(wire))
-    assert info.value.msg_type == "keyframe"
+@pytest.mark.parametrize("zstd_level", [0, 3])
+def test_old_version_is_refused_by_name(zstd_level):
+    wire = _wire(sample("submap_delta", n_points=200))
+    wire["version"] = 1  # the float16-only protocol before compression
+    payload = _pack(wire)
+    if zstd_level:
+        payload = compress(payload, zstd_level)
+    with pytest.raises(P.ProtocolError,
+                       match="version 1, this build speaks version 2 only") as info:
+        P.decode(payload)
+    assert info.value.msg_type == "submap_delta"
 
 
 def test_wrong_expected_type():
@@ -140,7 +149,7 @@ def test_duplicate_keys_are_refused():
 
 
 def test_ext_types_are_refused():
-    wire = {"type": "ack", "version": 1, "agent_id": msgpack.ExtType(5, b"x"), "seq": 1}
+    wire = {"type": "ack", "version": V, "agent_id": msgpack.ExtType(5, b"x"), "seq": 1}
     with pytest.raises(P.ProtocolError, match="extension"):
         P.decode(_pack(wire))
 

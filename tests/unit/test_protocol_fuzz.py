@@ -15,11 +15,14 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from cpslam import protocol as P
+from cpslam.protocol.quant import is_compressed
 from cpslam.protocol.samples import samples
 
 SAMPLES = samples(seed=3)
-PAYLOADS = [P.encode(m) for m in SAMPLES]
-WIRES = [msgpack.unpackb(p, raw=False) for p in PAYLOADS]
+PLAIN = [P.encode(m, zstd_level=0) for m in SAMPLES]
+WIRES = [msgpack.unpackb(p, raw=False) for p in PLAIN]
+# truncations and bit flips hit zstd frames too (every sample large enough to be compressed)
+PAYLOADS = PLAIN + [p for p in (P.encode(m) for m in SAMPLES) if is_compressed(p)]
 FUZZ = settings(max_examples=1000, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
 # msgpack-representable values, nested a little, including the types we use on the wire

@@ -1,0 +1,167 @@
+"""What the server already holds of an agent's map and decoder, and the compact deltas to it.
+
+`SubmapMirror` keeps the server's copy of the agent's own point features (what was sent,
+after the wire codec's rounding) and picks the points worth sending: new ones, and known
+ones whose features moved by more than ``threshold`` times the largest magnitude of the
+server's copy of that point. Comparing against the server's copy, not against the last
+local value, means slow drift below the threshold still gets sent once it adds up.
+
+`DecoderBase` remembers the group decoder the agent last loaded (the last agreed weights of
+its group) and, while there is none, the weights the server holds from the agent's last
+acknowledged `DecoderWeights`; it turns local weights into an int8 delta against one of them.
+Every ``full_every``-th message of the agent's own chain goes full, so a server that lost the
+chain (a restart) is back in step within that many rounds.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+import numpy as np
+
+from cpslam.protocol.quant import add_delta, dequantise_rows, quantise_rows
+
+__all__ = ["DecoderBase", "SubmapMirror", "encode_features"]
+
+FeatureCodec = Literal["float16", "int8"]
+
+
+def encode_features(features: np.ndarray, codec: FeatureCodec) -> tuple[dict[str, Any], np.ndarray]:
+    """(SubmapDelta feature fields, the float32 values the receiver decodes from them)."""
+    if codec == "float16":
+        f16 = np.asarray(features, np.float32).astype(np.float16)
+        return {"features": f16}, f16.astype(np.float32)
+    if codec == "int8":
+        q, scale = quantise_rows(np.asarray(features, np.float32))
+        return {"features_int8": q, "feature_scales": scale}, dequantise_rows(q, scale)
+    raise ValueError(f"feature codec: expected 'float16' or 'int8', got {codec!r}")
+
+
+class SubmapMirror:
+    """The server's copy of one agent's own point features, and which points to send next.
+
+    Args:
+        feature_dim: width F of the features.
+        threshold: relative change (of the copy's largest magnitude) that makes a known point
+            worth resending; 0 sends every change.
+        codec: how features travel ("float16" or "int8").
+    """
+
+    def __init__(
+        self, feature_dim: int, threshold: float = 0.0, codec: FeatureCodec = "float16"
+    ) -> None:
+        if threshold < 0:
+            raise ValueError(f"SubmapMirror: threshold must be >= 0, got {threshold}")
+        if codec not in ("float16", "int8"):
+            raise ValueError(f"SubmapMirror: codec must be 'float16' or 'int8', got {codec!r}")
+        self.threshold, self.codec = float(threshold), codec
+        self.ids = np.zeros(0, np.int64)  # sorted
+        self.features = np.zeros((0, feature_dim), np.float32)
+
+    def select(self, ids: np.ndarray, features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(mask [N] of the rows to send, ids the server holds that are gone) for the current
+        points `ids` int64 [N] (sorted) with `features` float32 [N, F]. Read only."""
+        known = np.zeros(len(ids), bool)
+        pos = np.zeros(len(ids), np.int64)
+        if len(self.ids) and len(ids):
+            pos = np.minimum(np.searchsorted(self.ids, ids), len(self.ids) - 1)
+            known = self.ids[pos] == ids
+        send = ~known
+        if known.any():
+            held = self.features[pos[known]]
+            # at float16, the server's storage precision: with threshold 0 a change that
+            # rounds away is no change (as before thresholds existed)
+            now = features[known].astype(np.float16).astype(np.float32)
+            moved = np.abs(now - held).max(axis=1)
+            if self.threshold == 0:
+                send[known] = moved > 0
+            else:
+                send[known] = moved > self.threshold * np.abs(held).max(axis=1)
+        return send, np.setdiff1d(self.ids, ids)
+
+    def commit(
+        self, ids: np.ndarray, features: np.ndarray, send: np.ndarray, received: np.ndarray
+    ) -> None:
+        """The server now holds `received` (float32, rows of ``ids[send]``) for the sent rows
+        and its old copy for the others; points not in `ids` are gone."""
+        kept = np.zeros((len(ids), self.features.shape[1]), np.float32)
+        old = ~send
+        if old.any():
+            pos = np.searchsorted(self.ids, ids[old])
+            kept[old] = self.features[pos]
+        kept[send] = received
+        self.ids, self.features = np.asarray(ids, np.int64), kept
+
+
+class DecoderBase:
+    """The weights the server agreed on last, and deltas of local weights against them.
+
+    Args:
+        full_every: every this many messages answered against the agent's own weights, one
+            goes full (>= 1; 1 never sends an own delta).
+    """
+
+    def __init__(self, full_every: int = 10) -> None:
+        if full_every < 1:
+            raise ValueError(f"DecoderBase: full_every must be >= 1, got {full_every}")
+        self.full_every = full_every
+        self.group_id: str | None = None
+        self.round = 0
+        self.tensors: dict[str, np.ndarray] = {}
+        self.own_seq: int | None = None  # acknowledged own message the server holds
+        self.own: dict[str, np.ndarray] = {}
+        self._sent: tuple[int, dict[str, np.ndarray]] | None = None  # waiting for its ack
+        self._chain = 0
+
+    def set(self, group_id: str, round: int, tensors: dict[str, np.ndarray]) -> None:
+        """The agent loaded `group_id`'s shared decoder of `round`."""
+        self.group_id, self.round = group_id, int(round)
+        self.tensors = {k: np.asarray(v, np.float32).copy() for k, v in tensors.items()}
+
+    def fields(self, group_id: str, weights: dict[str, np.ndarray]) -> dict[str, Any]:
+        """`DecoderWeights` fields for `weights`: an int8 delta against `group_id`'s loaded
+        decoder, else against the own weights the server holds, else the full weights."""
+        weights = {k: np.asarray(v, np.float32) for k, v in weights.items()}
+        if self.group_id == group_id and self.round >= 1 and _fits(self.tensors, weights):
+            return {"base_round": self.round, **_delta(weights, self.tensors)}
+        if (
+            self.own_seq is not None
+            and self._chain % self.full_every != 0
+            and _fits(self.own, weights)
+        ):
+            return {"base_seq": self.own_seq, **_delta(weights, self.own)}
+        return {"tensors": weights}
+
+    def sent(self, seq: int, fields: dict[str, Any]) -> None:
+        """The message of `seq` carried `fields` (its weights become the own base once
+        acknowledged)."""
+        if "tensors" in fields:
+            held = fields["tensors"]
+        else:  # what the server rebuilds: the base plus the dequantised delta
+            base = self.tensors if "base_round" in fields else self.own
+            held = add_delta(
+                base,
+                {
+                    k: dequantise_rows(q, fields["tensor_scales"][k])
+                    for k, q in fields["tensors_int8"].items()
+                },
+            )
+        self._sent = (seq, held)
+        self._chain += 1
+
+    def acked(self, seq: int) -> None:
+        """The server acknowledged every message up to `seq`."""
+        if self._sent is not None and self._sent[0] <= seq:
+            self.own_seq, self.own = self._sent
+            self._sent = None
+
+
+def _fits(base: dict[str, np.ndarray], weights: dict[str, np.ndarray]) -> bool:
+    return set(base) == set(weights) and all(base[k].shape == weights[k].shape for k in weights)
+
+
+def _delta(weights: dict[str, np.ndarray], base: dict[str, np.ndarray]) -> dict[str, Any]:
+    q, scales = {}, {}
+    for name, value in weights.items():
+        q[name], scales[name] = quantise_rows(value - base[name])
+    return {"tensors_int8": q, "tensor_scales": scales}

@@ -1,0 +1,216 @@
+"""Agent -> server bandwidth before and after the compact link, with the joint ATE of both.
+
+    python bench/bandwidth.py                          # the demo's scene: 2 agents x 100 frames
+    python bench/bandwidth.py --frames 0:150:3 --preset tiny          # a quick look
+    python bench/bandwidth.py --variants before after no-decoder-delta
+
+The demo's setup run in-process (`cpslam run`'s lock-step loop on the in-memory bus, the same
+nodes and codec as over Zenoh): `cpslam dataset synth --scene apartment --agents 2
+--num-frames 300` (320x240, cached under runs/bench-data/), every third frame, keyframes every
+10 processed frames. Variants (the `link` section, docs/configuration.md):
+
+- before: every mapping call a delta of every point whose float16 features changed, full
+  float32 decoders, no compression (the wire format before the link section);
+- after: the link section's defaults (coalesced deltas, relative change threshold, int8
+  features, int8 decoder deltas, zstd);
+- no-decoder-delta: after with full float32 decoders (the ATE with and without decoder deltas).
+
+Per variant and agent: bytes per second of sensor time per message type (the server's
+counters in metrics.json), the joint se3 ATE of both global trajectories, the merge time, and
+what the server's copy of each agent's map costs in rendering: each agent's final map rendered
+at its keyframes with its own features and with the features the server holds (the link's
+mirror of what it sent, as the server decodes it), compared as PSNR and depth difference.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "bench"))
+
+VARIANTS = {
+    "before": [
+        "link.submap_every_mappings=1",
+        "link.feature_threshold=0",
+        "link.feature_codec=float16",
+        "link.decoder_delta=false",
+        "link.zstd_level=0",
+    ],
+    "after": [],
+    "no-decoder-delta": ["link.decoder_delta=false"],
+}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--preset", default="cpu")
+    parser.add_argument("--frames", default="0:300:3", help="frames of each agent's walk")
+    parser.add_argument(
+        "--variants", nargs="+", default=["before", "after"], choices=sorted(VARIANTS)
+    )
+    parser.add_argument(
+        "--render-views",
+        type=int,
+        default=3,
+        help="keyframes per agent rendered for the server-copy comparison",
+    )
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "bandwidth.json")
+    args = parser.parse_args()
+    logging.basicConfig(level=logging.WARNING)
+    from benchinfo import bench_header
+
+    report = {
+        **bench_header("bandwidth", sys.argv),
+        "preset": args.preset,
+        "frames": args.frames,
+        "variants": {},
+    }
+    for name in args.variants:
+        t0 = time.perf_counter()
+        report["variants"][name] = run_variant(
+            args.preset, args.frames, VARIANTS[name], args.seed, args.render_views
+        )
+        report["variants"][name]["wall_s"] = round(time.perf_counter() - t0, 1)
+        print(f"{name}: {json.dumps(report['variants'][name]['summary'])}", flush=True)
+    v = report["variants"]
+    if "before" in v and "after" in v:
+        b, a = v["before"]["summary"], v["after"]["summary"]
+        report["ratio_after_over_before"] = {
+            "bytes_per_sensor_s": round(
+                a["bytes_per_sensor_s_mean"] / b["bytes_per_sensor_s_mean"], 4
+            ),
+            "joint_ate": (
+                round(a["joint_ate_cm"] / b["joint_ate_cm"], 4)
+                if a["joint_ate_cm"] and b["joint_ate_cm"]
+                else None
+            ),
+        }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(report, indent=1) + "\n")
+    print(f"wrote {args.out}")
+
+
+def run_variant(preset: str, frames: str, sets: list[str], seed: int, views: int) -> dict:
+    import tempfile
+
+    from cpslam.agent.standalone import open_for_config
+    from cpslam.common.config import load_config
+    from cpslam.demo import scene_data
+    from cpslam.run import run_collab
+
+    paths = scene_data(
+        ROOT / "runs" / "bench-data", "apartment", 2, 300, 320, 240, 0, show_progress=False
+    )
+    cfg = load_config(preset, overrides=["keyframes.every=10", f"run.seed={seed}", *sets], env={})
+    seqs = [open_for_config(cfg, p, frames=frames) for p in paths]
+    with tempfile.TemporaryDirectory() as tmp:
+        result = run_collab(cfg, seqs, Path(tmp) / "run", "cpu", show_progress=False)
+        metrics = json.loads((Path(tmp) / "run" / "metrics.json").read_text())
+    per_agent = {}
+    for aid, entry in metrics["bus"]["per_agent"].items():
+        per_agent[aid] = {
+            "sensor_s": round(entry.get("sensor_s", 0.0), 3),
+            "bytes": entry["from_agent_bytes"],
+            "bytes_per_sensor_s": round(entry.get("from_agent_bytes_per_sensor_s", 0.0), 1),
+            "by_type": {
+                t: {
+                    "messages": c["messages"],
+                    "bytes": c["bytes"],
+                    "bytes_per_sensor_s": round(c.get("bytes_per_sensor_s", 0.0), 1),
+                }
+                for t, c in sorted(entry["from_agent"].items())
+            },
+        }
+    for aid, node in result.nodes.items():
+        per_agent.setdefault(aid, {})["server_copy"] = server_copy_error(cfg, node, views)
+    ev = result.evaluation or {}
+    joint = ev.get("global_joint_se3_rmse_m")
+    rates = [a["bytes_per_sensor_s"] for a in per_agent.values() if "bytes_per_sensor_s" in a]
+    return {
+        "sets": sets,
+        "agents": per_agent,
+        "summary": {
+            "bytes_per_sensor_s_mean": round(float(np.mean(rates)), 1) if rates else None,
+            "joint_ate_cm": round(100 * joint, 3) if joint is not None else None,
+            "origin_ate_cm": {
+                a: round(100 * v, 3) for a, v in (ev.get("global_origin_rmse_m") or {}).items()
+            },
+            "merge_time_s": ev.get("merge_time_s"),
+            "merged": ev.get("merged"),
+        },
+    }
+
+
+def server_copy_error(cfg, node, views: int) -> dict:
+    """Each agent's own map rendered at `views` keyframes with its features and with the
+    server's copy of them: colour PSNR of one against the other, mean |depth difference|,
+    and the features' relative RMS error."""
+    import torch
+
+    from cpslam.common.field.renderer import render_image
+    from cpslam.common.field_config import field_spec
+
+    odo, mirror = node.odometry, node.link.mirror
+    pm = odo.point_map
+    own = (pm.agent_id == odo.agent_id).nonzero(as_tuple=True)[0]
+    ids = pm.point_id[own].cpu().numpy()
+    pos = np.minimum(np.searchsorted(mirror.ids, ids), max(len(mirror.ids) - 1, 0))
+    held = len(mirror.ids) > 0 and bool((mirror.ids[pos] == ids).all())
+    if not held:
+        return {"skipped": "the server's copy lacks some points"}
+    local = pm.features.detach().clone()
+    server = local.clone()
+    # the server stores float16 of what it decoded
+    server[own] = torch.from_numpy(mirror.features[pos].astype(np.float16).astype(np.float32))
+    rel_rms = float((server[own] - local[own]).norm() / local[own].norm().clamp(min=1e-12))
+    f = cfg.field
+    sampler = field_spec(f).sampler(perturb=False)
+    kfs = list(odo.keyframes)
+    pick = np.unique(np.linspace(0, len(kfs) - 1, views).round().astype(int))
+    psnr, depth_cm = [], []
+    intr = odo.keyframes.intrinsics
+    for i in pick:
+        T = torch.as_tensor(kfs[i].T_world_cam, dtype=torch.float64)
+        renders = []
+        for feats in (local, server):
+            pm.set_features(torch.arange(len(pm)), feats)
+            with torch.no_grad():
+                out = render_image(
+                    pm,
+                    odo.decoders,
+                    intr,
+                    T,
+                    sampler,
+                    k=f.k_neighbors,
+                    radius=f.radius,
+                    step=2,
+                    backend=f.neighbour_backend,
+                )
+            renders.append(out)
+        pm.set_features(torch.arange(len(pm)), local)
+        a, b = (r["color"].clamp(0, 1).double() for r in renders)
+        mse = float(((a - b) ** 2).mean())
+        psnr.append(99.0 if mse == 0 else 10 * np.log10(1.0 / mse))
+        both = (renders[0]["depth"] > 0) & (renders[1]["depth"] > 0)
+        if both.any():
+            diff = (renders[0]["depth"] - renders[1]["depth"]).abs()[both]
+            depth_cm.append(100 * float(diff.mean()))
+    return {
+        "feature_rel_rms": round(rel_rms, 5),
+        "views": len(pick),
+        "psnr_server_vs_local_db": round(float(np.mean(psnr)), 2),
+        "depth_diff_cm": round(float(np.mean(depth_cm)), 4) if depth_cm else None,
+    }
+
+
+if __name__ == "__main__":
+    main()

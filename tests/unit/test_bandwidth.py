@@ -1,0 +1,369 @@
+"""The compact link: int8 quantisation and zstd round trips, change thresholds, decoder deltas
+on both sides (with a base the server lacks), renders from quantised decoders and features."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+import zstandard
+from spec_helpers import spec
+
+from cpslam import protocol as P
+from cpslam.agent.deltas import DecoderBase, SubmapMirror, encode_features
+from cpslam.common.camera import Intrinsics
+from cpslam.common.field import NeuralPointMap, render_image
+from cpslam.common.trajectory import sensor_seconds
+from cpslam.protocol.quant import compress, decompress, dequantise_rows, quantise_rows
+from cpslam.protocol.samples import sample
+from cpslam.server.bases import DecoderBases
+from cpslam.server.registry import Registry
+from cpslam.server.traffic import traffic_per_agent
+
+RNG = np.random.default_rng(0)
+
+
+# --- quantisation and compression ----------------------------------------------------------
+
+
+@pytest.mark.parametrize("shape", [(), (7,), (50, 32), (4, 3, 5), (3, 0)])
+def test_int8_round_trip_error_is_at_most_half_a_step_of_each_row(shape):
+    x = (RNG.standard_normal(shape) * RNG.uniform(1e-3, 10.0)).astype(np.float32)
+    q, scale = quantise_rows(x)
+    assert q.dtype == np.int8 and q.shape == x.shape and np.abs(q.astype(int)).max(initial=0) <= 127
+    back = dequantise_rows(q, scale)
+    rows = x.reshape(x.shape[0] if x.ndim >= 2 else 1, -1)
+    err = np.abs(back - x).reshape(rows.shape)
+    peak = np.abs(rows).max(axis=1, initial=0.0)
+    # half a step, plus float32 rounding of the product
+    assert (err <= peak[:, None] / 254 * (1 + 1e-5) + 1e-12).all()
+
+
+def test_int8_keeps_zero_rows_exact_and_refuses_non_finite():
+    x = np.zeros((3, 4), np.float32)
+    x[1] = [1, -2, 3, -4]
+    q, scale = quantise_rows(x)
+    assert scale[0] == 0 and (dequantise_rows(q, scale)[[0, 2]] == 0).all()
+    with pytest.raises(ValueError, match="finite"):
+        quantise_rows(np.array([[1.0, np.nan]]))
+
+
+def test_zstd_round_trip_is_exact_and_shrinks_a_sub_map_delta():
+    msg = sample("submap_delta", n_points=2000)
+    plain = P.encode(msg, zstd_level=0)
+    packed = P.encode(msg)
+    assert packed[:4] == b"\x28\xb5\x2f\xfd" and len(packed) < len(plain)
+    assert decompress(packed, len(plain)) == plain
+    assert P.decode(packed) == msg == P.decode(plain)
+    small = P.encode(P.Ack(agent_id="a", seq=1))
+    assert small == P.encode(P.Ack(agent_id="a", seq=1), zstd_level=0)  # too small to pack
+
+
+def test_decompression_is_bounded_before_it_allocates():
+    bomb = compress(b"\x00" * 1_000_000, 3)
+    assert len(bomb) < 1000
+    with pytest.raises(P.ProtocolError, match="declares 1000000 bytes, over the cap of 1000"):
+        decompress(bomb, 1000)
+    streamed = zstandard.ZstdCompressor(write_content_size=False).compress(b"x" * 5000)
+    with pytest.raises(P.ProtocolError, match="does not declare"):
+        P.decode(streamed)
+    with pytest.raises(P.ProtocolError, match="zstd"):
+        P.decode(bomb[:-3])
+
+
+def test_int8_sub_map_delta_validates_and_decodes():
+    fields, received = encode_features(RNG.standard_normal((5, 8)), "int8")
+    base = {
+        "agent_id": "a",
+        "seq": 0,
+        "point_ids": np.arange(5),
+        "anchor_kf_ids": np.zeros(5, np.int32),
+        "xyz_local": np.zeros((5, 3)),
+        "colors": np.zeros((5, 3), np.uint8),
+        "removed_ids": np.zeros(0, np.int64),
+    }
+    msg = P.decode(P.encode(P.SubmapDelta(**base, **fields)))
+    np.testing.assert_array_equal(msg.feature_values(), received)
+    assert msg.feature_dim == 8
+    with pytest.raises(ValueError, match="exactly one"):
+        P.SubmapDelta(**base, **fields, features=np.zeros((5, 8)))
+    with pytest.raises(ValueError, match="feature_scales: required"):
+        P.SubmapDelta(**base, features_int8=fields["features_int8"])
+    with pytest.raises(ValueError, match="feature_scales: has 4 rows"):
+        P.SubmapDelta(
+            **base,
+            features_int8=fields["features_int8"],
+            feature_scales=fields["feature_scales"][:4],
+        )
+
+
+# --- what to send ----------------------------------------------------------------------------
+
+
+def test_threshold_is_relative_to_the_servers_copy():
+    mirror = SubmapMirror(4, threshold=0.1, codec="float16")
+    ids = np.array([1, 2, 3])
+    feats = np.array([[1, 0, 0, 0], [10, 0, 0, 0], [0.01, 0, 0, 0]], np.float32)
+    send, gone = mirror.select(ids, feats)
+    assert send.all() and gone.size == 0  # all new
+    _, received = encode_features(feats[send], "float16")
+    mirror.commit(ids, feats, send, received)
+    # the same absolute change: large for point 1 (scale 1), small for point 2 (scale 10)
+    moved = feats + np.array([[0.5, 0, 0, 0]], np.float32)
+    moved[2] = feats[2]
+    send, gone = mirror.select(np.array([1, 2, 3]), moved)
+    assert send.tolist() == [True, False, False]
+    # drift below the threshold adds up against the server's copy, not the last local value
+    mirror.commit(ids, moved, send, encode_features(moved[send], "float16")[1])
+    drift = moved.copy()
+    drift[1, 0] = 10.6  # 0.6 above the copy's 10 after several small steps
+    assert mirror.select(ids, drift)[0].tolist() == [False, False, False]
+    drift[1, 0] = 11.2
+    assert mirror.select(ids, drift)[0].tolist() == [False, True, False]
+    # a point that disappeared is reported once the mirror forgets it
+    send, gone = mirror.select(np.array([1, 3]), moved[[0, 2]])
+    assert gone.tolist() == [2] and not send.any()
+
+
+def test_threshold_zero_resends_every_change_that_survives_float16():
+    mirror = SubmapMirror(2)
+    ids, feats = np.array([4]), np.array([[1.0, 2.0]], np.float32)
+    mirror.commit(ids, feats, np.array([True]), encode_features(feats, "float16")[1])
+    assert not mirror.select(ids, feats + 1e-6)[0].any()  # rounds away in float16
+    assert mirror.select(ids, feats + 0.01)[0].all()
+
+
+# --- decoder deltas on both sides ------------------------------------------------------------
+
+
+def _weights(seed: int) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    return {
+        "l0.weight": rng.standard_normal((64, 32)).astype(np.float32),
+        "l0.bias": rng.standard_normal(64).astype(np.float32),
+        "gain": np.float32(rng.standard_normal()).reshape(()),
+    }
+
+
+def test_decoder_delta_agent_to_server_round_trip():
+    group = _weights(1)
+    local = {
+        k: v + 0.01 * np.random.default_rng(2).standard_normal(v.shape).astype(np.float32)
+        for k, v in group.items()
+    }
+    agent = DecoderBase()
+    assert "tensors" in agent.fields("g", local)  # no base yet: full weights
+    agent.set("g", 3, group)
+    fields = agent.fields("g", local)
+    assert fields["base_round"] == 3 and "tensors" not in fields
+    assert "tensors" in agent.fields("other", local)  # base of another group
+    msg = P.decode(
+        P.encode(
+            P.DecoderWeights(agent_id="a", seq=0, group_id="g", round=3, n_samples=5, **fields)
+        )
+    )
+    server = DecoderBases()
+    server.add("g", 3, group)
+    rebuilt = server.apply("g", 3, msg.values())
+    for name, value in local.items():
+        step = np.abs(value - group[name]).max() / 254
+        np.testing.assert_allclose(rebuilt[name], value, atol=step * 1.01 + 1e-7)
+    full = P.DecoderWeights(
+        agent_id="a", seq=0, group_id="g", round=3, n_samples=5, **agent.fields("g", local)
+    )
+    assert (
+        len(P.encode(msg, zstd_level=0))
+        < len(
+            P.encode(
+                full.model_copy(
+                    update={
+                        "tensors": local,
+                        "tensors_int8": None,
+                        "tensor_scales": None,
+                        "base_round": None,
+                    }
+                ),
+                zstd_level=0,
+            )
+        )
+        / 3
+    )
+
+
+def test_registry_applies_decoder_deltas_and_drops_an_unknown_base():
+    group = _weights(1)
+    local = {k: v + 0.5 for k, v in group.items()}
+    base = DecoderBase()
+    base.set("g", 2, group)
+    reg = Registry(4, decoder_shapes={k: v.shape for k, v in group.items()})
+    msg = P.DecoderWeights(
+        agent_id="a", seq=0, group_id="g", round=2, n_samples=5, **base.fields("g", local)
+    )
+    reg.handle(msg)  # the server never published g#2
+    assert any("g#2, a group decoder this server does not hold" in r for r in reg.dropped)
+    assert reg.agents["a"].decoder is None
+    reg.decoder_bases.add("g", 2, group)
+    reg.handle(msg.model_copy(update={"seq": 1}))
+    for name, value in local.items():
+        np.testing.assert_allclose(reg.agents["a"].decoder[name], value, atol=0.5 / 254 + 1e-6)
+
+
+def test_decoder_bases_are_bounded_per_group_and_overall():
+    bases = DecoderBases(per_group=2, max_entries=3)
+    w = {"w": np.zeros(2, np.float32)}
+    for r in (1, 2, 3):
+        bases.add("g", r, w)
+    assert isinstance(bases.apply("g", 1, w), str) and isinstance(bases.apply("g", 3, w), dict)
+    bases.add("h", 1, w)
+    bases.add("k", 1, w)
+    assert len(bases) == 3
+    assert "other tensors" in bases.apply("k", 1, {"v": np.zeros(2, np.float32)})
+    assert "shape" in bases.apply("k", 1, {"w": np.zeros(3, np.float32)})
+
+
+# --- renders from quantised decoders and features --------------------------------------------
+
+INTR = Intrinsics(fx=40.0, fy=40.0, cx=23.5, cy=17.5, width=48, height=36)
+SPEC = spec(c_hidden=32, g_hidden=32, u_hidden=32)
+
+
+def _plane_map() -> NeuralPointMap:
+    m = NeuralPointMap(feature_dim=32, cell_size=0.1)
+    m.set_keyframe_poses(0, np.eye(4))
+    g = torch.arange(-1.6, 1.6, 0.1, dtype=torch.float64) + 0.05
+    xx, yy = torch.meshgrid(g, g, indexing="ij")
+    xyz = torch.stack((xx.reshape(-1), yy.reshape(-1), torch.full((xx.numel(),), 2.0)), -1)
+    feats = 0.1 * torch.randn(len(xyz), 32, generator=torch.Generator().manual_seed(0))
+    m.add_points(xyz.float(), 0, feats, torch.full((len(xyz), 3), 200, dtype=torch.uint8))
+    return m
+
+
+def _render(point_map, decoders) -> dict[str, torch.Tensor]:
+    with torch.no_grad():
+        return render_image(
+            point_map,
+            decoders,
+            INTR,
+            torch.eye(4, dtype=torch.float64),
+            SPEC.sampler(perturb=False),
+            k=SPEC.k_neighbors,
+            radius=SPEC.radius,
+            step=2,
+        )
+
+
+def test_decoder_from_a_quantised_delta_renders_like_the_unquantised_one():
+    """Tolerance: the quantised decoder's render is closer to the exact one than 2 % of the
+    change the delta itself makes (its elements are off by at most 1/254 of a row's peak)."""
+    point_map = _plane_map()
+    exact = SPEC.decoders(0)
+    base = {
+        k: v + 0.05 * torch.randn(v.shape, generator=torch.Generator().manual_seed(1))
+        for k, v in exact.state_dict().items()
+    }
+    agent = DecoderBase()
+    agent.set("g", 1, {k: v.numpy() for k, v in base.items()})
+    fields = agent.fields("g", {k: v.numpy() for k, v in exact.state_dict().items()})
+    msg = P.decode(
+        P.encode(
+            P.DecoderWeights(agent_id="a", seq=0, group_id="g", round=1, n_samples=1, **fields)
+        )
+    )
+    server = DecoderBases()
+    server.add("g", 1, {k: v.numpy() for k, v in base.items()})
+    rebuilt, on_base = SPEC.decoders(0), SPEC.decoders(0)
+    rebuilt.load_state_dict(
+        {k: torch.as_tensor(v) for k, v in server.apply("g", 1, msg.values()).items()}
+    )
+    on_base.load_state_dict(base)
+    ref, got, old = (_render(point_map, d) for d in (exact, rebuilt, on_base))
+    assert (ref["acc"] > 0).any()
+    for key in ("color", "depth"):
+        change = (old[key] - ref[key]).abs().mean()
+        err = (got[key] - ref[key]).abs().mean()
+        assert change > 0 and err <= 0.02 * change, (key, float(err), float(change))
+
+
+def test_int8_features_render_like_float16_ones():
+    """Tolerance: int8 features (off by at most 1/254 of a point's peak, about 1/1000 on
+    average) move the render less than 5 % of what noise of 10 % of the peak does."""
+    point_map, decoders = _plane_map(), SPEC.decoders(0)
+    feats = point_map.features.detach().clone()
+    rows = torch.arange(len(point_map))
+    _, received = encode_features(feats.numpy(), "int8")
+    ref = _render(point_map, decoders)
+    point_map.set_features(rows, torch.from_numpy(received))
+    got = _render(point_map, decoders)
+    noise = (
+        0.1
+        * feats.abs().amax(1, keepdim=True)
+        * torch.randn(feats.shape, generator=torch.Generator().manual_seed(3))
+    )
+    point_map.set_features(rows, feats + noise)
+    noisy = _render(point_map, decoders)
+    for key in ("color", "depth"):
+        change = (noisy[key] - ref[key]).abs().mean()
+        err = (got[key] - ref[key]).abs().mean()
+        assert change > 0 and err <= 0.05 * change, (key, float(err), float(change))
+
+
+# --- bytes per sensor second -----------------------------------------------------------------
+
+
+def test_bytes_per_sensor_second_per_key_and_agent():
+    assert sensor_seconds([0.0, 0.1, 0.2, 0.3]) == pytest.approx(0.4)
+    assert sensor_seconds([5.0]) is None
+    traffic = {
+        "received": {
+            "cpslam/s/agent/a0/submap": {"messages": 2, "bytes": 1000},
+            "cpslam/s/agent/a0/decoder": {"messages": 1, "bytes": 600},
+        }
+    }
+    out = traffic_per_agent("s", traffic, seconds=100.0, sensor_s={"a0": 4.0})
+    a0 = out["a0"]
+    assert a0["sensor_s"] == 4.0
+    assert a0["from_agent"]["submap"]["bytes_per_sensor_s"] == 250.0
+    assert a0["from_agent_bytes_per_sensor_s"] == 400.0
+    assert a0["from_agent_bytes_per_s"] == 16.0
+    assert (
+        "bytes_per_sensor_s"
+        not in traffic_per_agent("s", traffic, 1.0)["a0"]["from_agent"]["submap"]
+    )
+
+
+def test_own_decoder_chain_follows_acks_and_goes_full_every_n():
+    """Before any shared decoder the deltas refer to the agent's own acknowledged weights;
+    the server rebuilds them bit for bit as the agent predicts, refuses a chain it lost, and
+    a full message every `full_every` puts it back in step."""
+    agent, reg = DecoderBase(full_every=3), Registry(4)
+    w = _weights(1)
+    sent = []
+    for seq in range(7):
+        w = {k: v + 0.01 * (seq + 1) for k, v in w.items()}
+        fields = agent.fields("a", w)
+        msg = P.DecoderWeights(agent_id="a", seq=seq, group_id="a", round=0, n_samples=1, **fields)
+        agent.sent(seq, fields)
+        sent.append(msg)
+        if seq == 4:  # the server restarts and loses the chain
+            reg = Registry(4)
+        reg.handle(P.decode(P.encode(msg)))
+        agent.acked(seq)
+        if seq not in (4, 5):  # deltas against seqs 3 and 4, refused; 6: full again
+            np.testing.assert_array_equal(
+                reg.agents["a"].decoder["l0.weight"], agent.own["l0.weight"]
+            )
+    kinds = ["full" if m.tensors is not None else m.base_seq for m in sent]
+    assert kinds == ["full", 0, 1, "full", 3, 4, "full"]
+    assert sum("the server holds its weights of seq -1" in r for r in reg.dropped) == 2
+    assert reg.agents["a"].decoder_seq == 6
+
+
+def test_agent_reports_bytes_per_sensor_second_per_key():
+    from types import SimpleNamespace
+
+    from cpslam.agent.node import AgentNode
+
+    node = SimpleNamespace(results=[SimpleNamespace(timestamp=t) for t in (0.0, 0.5, 1.0, 1.5)])
+    stats = {"sent": {"cpslam/s/agent/a/submap": {"messages": 3, "bytes": 8000}}}
+    assert AgentNode.sent_per_sensor_s(node, stats) == {"cpslam/s/agent/a/submap": 4000.0}
+    assert AgentNode.sent_per_sensor_s(SimpleNamespace(results=[]), stats) == {}
