@@ -75,3 +75,18 @@ def kitchen_path() -> Path:
 def fake_clock() -> FakeClock:
     """A clock that only moves when the test moves it (pass it where code takes `clock`/`now`)."""
     return FakeClock()
+
+
+@pytest.fixture
+def renamed(monkeypatch) -> list[Path]:
+    """Every destination `os.replace` renames a file to during the test, in order (atomic
+    writes end in one)."""
+    done: list[Path] = []
+    real_replace = os.replace
+
+    def replace(src, dst) -> None:
+        done.append(Path(dst))
+        real_replace(src, dst)
+
+    monkeypatch.setattr(os, "replace", replace)
+    return done

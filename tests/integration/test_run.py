@@ -50,22 +50,12 @@ def test_two_agents_merge_and_agree_with_ground_truth(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
-def test_single_agent_run_writes_all_outputs(tmp_path: Path, monkeypatch) -> None:
-    import os
-
+def test_single_agent_run_writes_all_outputs(tmp_path: Path, renamed: list[Path]) -> None:
     from cpslam.tools.synth import generate
 
     data = generate(tmp_path / "room", scene="room", frames=30, width=160, height=120, seed=0,
                     loop=True)
     out = tmp_path / "run"
-    renamed: list[Path] = []
-    real_replace = os.replace
-
-    def replace(src, dst) -> None:
-        renamed.append(Path(dst))
-        real_replace(src, dst)
-
-    monkeypatch.setattr(os, "replace", replace)
     _invoke(["--seq", str(data.agent_dirs[0]), "--preset", "tiny", "--set",
              "mapping.iters_first=30", "--out", str(out), "--no-progress"])
     written = [p for p in renamed if p.is_relative_to(out)]

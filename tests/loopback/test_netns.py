@@ -115,19 +115,27 @@ def _rx_bytes(ns: str, dev: str) -> int:
     return int(out.stdout)
 
 
-def test_server_and_agents_in_separate_network_namespaces(tmp_path: Path, namespaces) -> None:
+def _start(tmp_path: Path, namespaces, frames: int, seed: int, session: str):
+    """Render a two-agent apartment, then start the server and both agents, each in its own
+    namespace: (server, agents, run folder)."""
     from cpslam.tools.synth import generate
 
     names, addresses = namespaces
-    data = generate(tmp_path / "apt", scene="apartment", agents=2, frames=40, width=160,
-                    height=120, seed=3)
-    out, s = tmp_path / "run", "netns"
+    data = generate(tmp_path / "apt", scene="apartment", agents=2, frames=frames, width=160,
+                    height=120, seed=seed)
+    out = tmp_path / "run"
     in_ns = lambda ns: ["ip", "netns", "exec", ns]  # noqa: E731
-    server = Daemon("server", server_args(f"tcp/0.0.0.0:{PORT}", s, out, "--no-report"), tmp_path,
-                    prefix=in_ns(names["server"]))
+    server = Daemon("server", server_args(f"tcp/0.0.0.0:{PORT}", session, out, "--no-report"),
+                    tmp_path, prefix=in_ns(names["server"]))
     agents = [Daemon(f"agent{a}", agent_args(data.agent_dirs[int(a)], a,
-                                             f"tcp/{addresses[a][0]}:{PORT}", s, out),
+                                             f"tcp/{addresses[a][0]}:{PORT}", session, out),
                      tmp_path, prefix=in_ns(names[a])) for a in AGENTS]
+    return server, agents, out
+
+
+def test_server_and_agents_in_separate_network_namespaces(tmp_path: Path, namespaces) -> None:
+    names, addresses = namespaces
+    server, agents, out = _start(tmp_path, namespaces, frames=40, seed=3, session="netns")
     try:
         for agent in agents:
             assert agent.wait(600) == 0, agent.tail() + "\n" + server.tail()
@@ -163,19 +171,9 @@ def test_partition_heals_with_nothing_lost(tmp_path: Path, namespaces) -> None:
     """Agent 0's link to the server goes down for 10 s mid-stream (its veth end set down, so
     packets vanish as on a cut cable); when it heals, everything reaches the server: every
     frame pose is in the final trajectories and nothing is left unacknowledged."""
-    from cpslam.tools.synth import generate
-
     names, addresses = namespaces
-    frames = 60
-    data = generate(tmp_path / "apt", scene="apartment", agents=2, frames=frames, width=160,
-                    height=120, seed=4)
-    out, s = tmp_path / "run", "partition"
-    in_ns = lambda ns: ["ip", "netns", "exec", ns]  # noqa: E731
-    server = Daemon("server", server_args(f"tcp/0.0.0.0:{PORT}", s, out, "--no-report"), tmp_path,
-                    prefix=in_ns(names["server"]))
-    agents = [Daemon(f"agent{a}", agent_args(data.agent_dirs[int(a)], a,
-                                             f"tcp/{addresses[a][0]}:{PORT}", s, out),
-                     tmp_path, prefix=in_ns(names[a])) for a in AGENTS]
+    frames, s = 60, "partition"
+    server, agents, out = _start(tmp_path, namespaces, frames=frames, seed=4, session=s)
     agent_if = addresses["0"][1][:-1] + "a"  # the agent's end of its veth pair
     try:
         wait_until("agent 0's first keyframes at the server", lambda: _server_status(

@@ -189,10 +189,8 @@ def _torch_load(data: bytes):
 
 
 def test_run_outputs_are_renamed_into_place_with_metrics_json_last(
-    tmp_path: Path, monkeypatch
+    tmp_path: Path, renamed: list[Path]
 ) -> None:
-    import os
-
     import numpy as np
 
     from cpslam.protocol import SubmapDelta
@@ -214,14 +212,6 @@ def test_run_outputs_are_renamed_into_place_with_metrics_json_last(
     agent_bus.publish(keys.agent_submap(SESSION, "a"), protocol.encode(points))
     _settle(agent_bus)
     node.poll()
-    renamed: list[Path] = []
-    real_replace = os.replace
-
-    def replace(src, dst) -> None:
-        renamed.append(Path(dst))
-        real_replace(src, dst)
-
-    monkeypatch.setattr(os, "replace", replace)
     node.finalise()
     node.close()
     outputs = {p for p in tmp_path.rglob("*") if p.is_file() and not p.name.startswith("state.")}
