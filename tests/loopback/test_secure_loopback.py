@@ -18,6 +18,7 @@ from daemons import Daemon, agent_args, finalise, server_args, status, wait_unti
 
 from cpslam.common.bus import BusError, ZenohBus, ZenohSecurity, open_client
 from cpslam.common.config import load_config
+from cpslam.common.place_recognition import descriptor_dim
 from cpslam.demo import free_port
 from cpslam.protocol import Ack, Control, KeyframeMsg, encode, keys
 from cpslam.server.client import query_status
@@ -26,6 +27,7 @@ from cpslam.tools.secure.bundle import write_bundle
 pytestmark = [pytest.mark.loopback, pytest.mark.slow]
 
 SESSION = "sec"
+DESCRIPTOR_DIM = descriptor_dim(load_config("tiny", env={}).place_recognition)
 
 
 @pytest.fixture(scope="module")
@@ -52,7 +54,8 @@ def _client(bundle: Path, role: str, endpoint: str) -> ZenohBus:
 
 def _keyframe(agent: str, seq: int) -> bytes:
     # Orthogonal descriptors per agent: no loop candidate, so no image queries.
-    descriptor = np.zeros(64, np.float32)
+    # The server checks the length against its own (tiny) config.
+    descriptor = np.zeros(DESCRIPTOR_DIM, np.float32)
     descriptor[int(agent[-1])] = 1.0
     return encode(KeyframeMsg(agent_id=agent, seq=seq, kf_id=seq, frame_index=seq,
                               stamp=float(seq), T_world_cam=np.eye(4), descriptor=descriptor))
