@@ -71,12 +71,15 @@ def fsync_dir(folder: str | Path) -> None:
 
 @contextlib.contextmanager
 def atomic_open(
-    path: str | Path, mode: str = "wb", encoding: str | None = None
+    path: str | Path, mode: str = "wb", encoding: str | None = None,
+    previous: str | Path | None = None,
 ) -> Iterator[IO[Any]]:
     """Open a temporary file next to `path` for writing; on a clean exit it is fsynced and
     renamed over `path` (and the folder fsynced), on an exception it is removed.
 
-    The parent folders are created. `mode` is ``"wb"`` or ``"w"``.
+    The parent folders are created. `mode` is ``"wb"`` or ``"w"``. With `previous`, an
+    existing `path` is moved there just before the new file takes its place (only once the
+    new file is complete and fsynced).
     """
     if mode not in ("wb", "w"):
         raise ValueError(f"atomic_open {path}: mode must be 'wb' or 'w', got {mode!r}")
@@ -88,6 +91,8 @@ def atomic_open(
             yield f
             f.flush()
             os.fsync(f.fileno())
+        if previous is not None and path.is_file():
+            os.replace(path, previous)
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(OSError):
@@ -182,22 +187,9 @@ def save_generation(path: str | Path, payload: bytes) -> Path:
     leaves a good newest or a good previous generation (`load_generation` finds it).
     """
     path, prev = generation_paths(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(payload)  # and the trailer apart: no second copy of a large state
-            f.write(trailer(payload))
-            f.flush()
-            os.fsync(f.fileno())
-        if path.is_file():
-            os.replace(path, prev)
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
-    fsync_dir(path.parent)
+    with atomic_open(path, "wb", previous=prev) as f:
+        f.write(payload)  # and the trailer apart: no second copy of a large state
+        f.write(trailer(payload))
     return path
 
 
