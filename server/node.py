@@ -30,6 +30,7 @@ from cpslam import protocol
 from cpslam.common import durable
 from cpslam.common.bounds import CappedCounter, LogThrottle
 from cpslam.common.rundir import peak_rss_mb
+from cpslam.common.trajectory import sensor_seconds
 from cpslam.protocol import (
     Ack,
     Control,
@@ -48,13 +49,7 @@ from cpslam.server.backend import Backend, Outgoing
 from cpslam.server.bounds import fit_status, status_size
 from cpslam.server.export import export_run
 from cpslam.server.persist import AckGate, StateWriter, detach
-from cpslam.server.traffic import (
-    DecoderFanout,
-    KeyCounter,
-    sensor_seconds,
-    traffic_per_agent,
-    traffic_per_group,
-)
+from cpslam.server.traffic import DecoderFanout, KeyCounter, traffic_per_agent, traffic_per_group
 
 if TYPE_CHECKING:
     from cpslam.common.bus import Bus

@@ -5,8 +5,9 @@ agents publish), so `KeyCounter` counts what the server takes off that queue und
 concrete key, and `DecoderFanout` what each agent is sent on the group decoder keys. The
 functions here turn those counts and `Bus.stats()` into the ``bus`` section of the server's
 ``metrics.json`` (documented in docs/daemons.md). Rates come per second of the server's uptime
-and, where the agents' frame stamps are known, per second of sensor time (`sensor_seconds`):
-bandwidth that does not depend on how fast this machine processes frames.
+and, where the agents' frame stamps are known, per second of sensor time
+(`common.trajectory.sensor_seconds`): bandwidth that does not depend on how fast this machine
+processes frames.
 """
 
 from __future__ import annotations
@@ -14,11 +15,9 @@ from __future__ import annotations
 from collections.abc import Iterable, Mapping
 
 from cpslam.common.bounds import OTHER
-from cpslam.common.trajectory import sensor_seconds
 from cpslam.protocol import keys
 
-__all__ = ["DecoderFanout", "KeyCounter", "sensor_seconds", "traffic_per_agent",
-           "traffic_per_group"]  # sensor_seconds: re-exported for the node
+__all__ = ["DecoderFanout", "KeyCounter", "traffic_per_agent", "traffic_per_group"]
 
 Table = dict[str, dict[str, int]]
 """{key or agent: {"messages": int, "bytes": int}}"""
