@@ -10,8 +10,10 @@
    ``transport.resend_after_s`` after it was sent, track and map, publish. While the outbox
    is full (``transport.outbox_messages`` / ``outbox_mb``) no frame is taken until acks make
    room (logged once per stall): accepted data is never dropped.
-4. When the server's token comes back after it left (restart, network loss), resend every
-   message it has not acknowledged (the outbox); the server drops what it already had.
+4. While the server's token is gone, messages wait in the outbox. When it comes back (restart,
+   network loss) under the same state id, resend every message it has not acknowledged (the
+   server drops what it already had); under another state id (a server restarted without its
+   state) stream the whole state again as a new incarnation (`cpslam.agent.rebase`).
 5. At the end: send the last frame poses and wait until everything is acknowledged, then
    write ``RUN/agent_<id>/`` (as a standalone run, plus bytes sent per key expression).
 
@@ -35,7 +37,7 @@ from typing import TYPE_CHECKING
 from cpslam.common.bus import open_client
 from cpslam.common.bus.factory import ANNOUNCE_AFTER_S, STOP_CHECK_S
 from cpslam.common.cli import ExitCode
-from cpslam.protocol import keys
+from cpslam.protocol import ProtocolError, keys
 
 if TYPE_CHECKING:
     from cpslam.agent.node import AgentNode
@@ -49,23 +51,36 @@ logger = logging.getLogger(__name__)
 
 
 class ServerPresence:
-    """Tracks the server's liveliness token; counts how often it (re)appeared."""
+    """Tracks the server's liveliness token: whether it is up, how often it (re)appeared, the
+    state id it came with, and how many appearances the agent has answered (`handled`)."""
 
     def __init__(self, bus: Bus, session: str) -> None:
         self._cond = threading.Condition()
+        self.session = session
         self.up = False
         self.joins = 0
-        self._watch = bus.watch_liveliness(keys.alive_server(session), on_join=self._join,
+        self.handled = 0
+        self.state: int | None = None
+        self._watch = bus.watch_liveliness(keys.alive_servers(session), on_join=self._join,
                                            on_leave=self._leave)
 
-    def _join(self, _key: str) -> None:
+    def _join(self, key: str) -> None:
+        try:
+            state = keys.parse_alive_server(self.session, key)
+        except ProtocolError as exc:
+            logger.warning("ignoring server liveliness token %s: %s", key, exc)
+            return
         with self._cond:
-            self.up, self.joins = True, self.joins + 1
+            self.up, self.joins, self.state = True, self.joins + 1, state
             self._cond.notify_all()
 
     def _leave(self, _key: str) -> None:
         with self._cond:
             self.up = False
+
+    def settled(self) -> bool:
+        """The server is up and its latest appearance was answered (messages may go out)."""
+        return self.up and self.handled == self.joins
 
     def wait(self, timeout_s: float, stop: threading.Event | None = None) -> bool:
         """Block until the server is present (True), or `timeout_s` passed or `stop` was set
@@ -131,10 +146,11 @@ def run_networked(cfg: CpslamConfig, seq: RGBDSequence, agent_id: str, run_dir: 
         if resume is not None:
             node.resume(resume)
         node.start()
-        if resume is not None:
-            node.resend()  # the outbox of the earlier run: the server may never have had it
+        node.online = presence.settled
+        # A resumed agent resends its earlier run's outbox (the server may never have had it),
+        # or its whole state to a server that lost it.
+        _answer_server(node, presence, resend=resume is not None)
         torch.manual_seed(cfg.run.seed)
-        joins_seen = presence.joins
         interrupted = False
         acked = False
         try:
@@ -145,11 +161,11 @@ def run_networked(cfg: CpslamConfig, seq: RGBDSequence, agent_id: str, run_dir: 
                     if stop.is_set():
                         interrupted = True
                         break
-                    joins_seen = _resend_after_rejoin(node, presence, joins_seen)
+                    _answer_server(node, presence)
                     node.poll()
-                    if presence.up:
+                    if presence.settled():
                         node.resend_due()
-                    joins_seen = _wait_for_room(node, presence, joins_seen, stop)
+                    _wait_for_room(node, presence, stop)
                     if node.refused is not None or stop.is_set():
                         interrupted = node.refused is None
                         break
@@ -162,7 +178,7 @@ def run_networked(cfg: CpslamConfig, seq: RGBDSequence, agent_id: str, run_dir: 
                                f"{result.track_loss:.4f}  outbox {len(node.link.outbox)}{away}")
             if node.refused is None and not interrupted:
                 node.flush()
-                acked = _wait_acked(node, presence, joins_seen, ack_timeout_s, stop)
+                acked = _wait_acked(node, presence, ack_timeout_s, stop)
         finally:
             node.write_outputs(extra={"bus": bus.stats(),
                                       "sent_bytes_per_sensor_s": node.sent_per_sensor_s(
@@ -172,7 +188,8 @@ def run_networked(cfg: CpslamConfig, seq: RGBDSequence, agent_id: str, run_dir: 
                                       "ignored_acks": node.link.outbox.ignored_acks,
                                       "dropped_by_server": len(node.link.outbox.dropped_by_server),
                                       "incarnation": node.incarnation,
-                                      "server_rejoins": max(presence.joins - 1, 0)})
+                                      "server_rejoins": max(presence.joins - 1, 0),
+                                      "stream_restarts": node.restarts})
             node.close()
             presence.close()
     if node.refused is not None:
@@ -188,46 +205,59 @@ def run_networked(cfg: CpslamConfig, seq: RGBDSequence, agent_id: str, run_dir: 
     return 0
 
 
-def _resend_after_rejoin(node: AgentNode, presence: ServerPresence, joins_seen: int) -> int:
-    if presence.joins > joins_seen and presence.up:
-        n = node.resend()
+def _answer_server(node: AgentNode, presence: ServerPresence, resend: bool = True) -> None:
+    """Once per appearance of the server: under the state id the stream went to (or the first
+    time, with `resend`), resend what it has not acknowledged; under another one, stream the
+    whole state again (`AgentNode.restart_stream`)."""
+    joins, state = presence.joins, presence.state
+    if joins == presence.handled or not presence.up:
+        return
+    link = node.link
+    old = link.server_state
+    lost = old is not None and state != old and link.next_seq > 0
+    link.server_state = state
+    presence.handled = joins  # before sending: `node.online` lets the messages out
+    if lost:
+        logger.warning("agent %s: the server came back as state %d, the stream went to state "
+                       "%d: what it acknowledged is gone; streaming everything again",
+                       node.agent_id, state, old)
+        n = node.restart_stream()
+        logger.info("agent %s: sent %d messages as incarnation %d", node.agent_id, n,
+                    node.incarnation)
+    elif resend and (n := node.resend()):
         logger.info("agent %s: server is back; resent %d unacknowledged messages",
                     node.agent_id, n)
-        return presence.joins
-    return joins_seen
 
 
-def _wait_for_room(node: AgentNode, presence: ServerPresence, joins_seen: int,
-                   stop: threading.Event) -> int:
-    """While the outbox is full: apply what arrives, resend what is due; returns joins seen."""
+def _wait_for_room(node: AgentNode, presence: ServerPresence, stop: threading.Event) -> None:
+    """While the outbox is full: apply what arrives, resend what is due."""
     outbox = node.link.outbox
     if not outbox.full():
-        return joins_seen
+        return
     logger.warning("agent %s: outbox full (%d messages, %.1f MiB unacknowledged); waiting for "
                    "acks before the next frame", node.agent_id, len(outbox), outbox.bytes / 2**20)
     t0 = time.monotonic()
     while outbox.full() and node.refused is None and not stop.is_set():
-        joins_seen = _resend_after_rejoin(node, presence, joins_seen)
+        _answer_server(node, presence)
         if not node.poll():
             node.wait_for_server_message(0.1)
-        if presence.up:
+        if presence.settled():
             node.resend_due()
     logger.info("agent %s: outbox has room again after %.1f s", node.agent_id,
                 time.monotonic() - t0)
-    return joins_seen
 
 
-def _wait_acked(node: AgentNode, presence: ServerPresence, joins_seen: int, timeout_s: float,
+def _wait_acked(node: AgentNode, presence: ServerPresence, timeout_s: float,
                 stop: threading.Event) -> bool:
-    """Until the outbox is empty: apply what arrives, resend after a server rejoin and what
-    is unacknowledged ``transport.resend_after_s`` after it was sent (a lost ack)."""
+    """Until the outbox is empty: apply what arrives, answer a server that came back and resend
+    what is unacknowledged ``transport.resend_after_s`` after it was sent (a lost ack)."""
     link = node.link
     deadline = time.monotonic() + timeout_s
     while (link.outbox and time.monotonic() < deadline and not stop.is_set()
            and node.refused is None):
-        joins_seen = _resend_after_rejoin(node, presence, joins_seen)
+        _answer_server(node, presence)
         if not node.poll():
             node.wait_for_server_message(0.1)
-        if link.outbox and presence.up:
+        if link.outbox and presence.settled():
             node.resend_due()
     return not link.outbox

@@ -83,14 +83,18 @@ class SubmapMirror:
         self, ids: np.ndarray, features: np.ndarray, send: np.ndarray, received: np.ndarray
     ) -> None:
         """The server now holds `received` (float32, rows of ``ids[send]``) for the sent rows
-        and its old copy for the others; points not in `ids` are gone."""
-        kept = np.zeros((len(ids), self.features.shape[1]), np.float32)
-        old = ~send
-        if old.any():
-            pos = np.searchsorted(self.ids, ids[old])
-            kept[old] = self.features[pos]
-        kept[send] = received
-        self.ids, self.features = np.asarray(ids, np.int64), kept
+        and its old copy for the others it knew; points not in `ids` are gone, and new points
+        left out of this message stay unknown (sent by a later one)."""
+        keep = send.copy()
+        held = np.zeros((len(ids), self.features.shape[1]), np.float32)
+        held[send] = received
+        old = np.nonzero(~send)[0]
+        if len(old) and len(self.ids):
+            pos = np.minimum(np.searchsorted(self.ids, ids[old]), len(self.ids) - 1)
+            hit = self.ids[pos] == ids[old]
+            keep[old[hit]] = True
+            held[old[hit]] = self.features[pos[hit]]
+        self.ids, self.features = np.asarray(ids, np.int64)[keep], held[keep]
 
 
 class DecoderBase:

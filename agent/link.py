@@ -65,6 +65,9 @@ logger = logging.getLogger(__name__)
 MAX_WAITING_DECODERS = 16
 """Shared decoders of other groups an agent holds on to (the newest groups first)."""
 
+MAX_FRAMES_PER_MESSAGE = 8192
+"""Frame poses per `FramePoses` message (well under its size cap)."""
+
 Describe = Callable[[np.ndarray], np.ndarray]
 
 
@@ -133,6 +136,10 @@ class AgentLink:
         self.stats = {"updates": 0, "decoders": 0, "foreign_points": 0, "images": 0}
         self._seq = 0
         self._frame_kf: list[int] = []  # keyframe each trajectory entry is expressed against
+        self._frame_index: list[int] = []  # stream index of each trajectory entry
+        self._descriptors: dict[int, np.ndarray] = {}  # as sent, for a restarted stream
+        self.server_state: int | None = None
+        """State id of the server this stream goes to (`cpslam.agent.rebase`)."""
         self._pending_frames: list[tuple[int, float, int, np.ndarray]] = []
         self.mirror = SubmapMirror(odometry.point_map.feature_dim, feature_threshold,
                                    feature_codec)  # type: ignore[arg-type]
@@ -152,6 +159,7 @@ class AgentLink:
         kf = self.odometry.keyframes.latest
         assert kf is not None  # frame 0 is always a keyframe
         self._frame_kf.append(kf.kf_id)
+        self._frame_index.append(int(result.index))
         T_kf_frame = _rigid(compose(invert(kf.T_world_cam), result.T_world_cam))
         self._pending_frames.append((result.index, result.timestamp, kf.kf_id, T_kf_frame))
         if result.is_keyframe:
@@ -180,15 +188,18 @@ class AgentLink:
         return ([delta] if delta is not None else []) + self.flush()
 
     def flush(self) -> list[Message]:
-        """The frame poses not sent yet (call at the end of the stream)."""
-        if not self._pending_frames:
-            return []
-        idx, stamps, kfs, T = zip(*self._pending_frames, strict=True)
-        self._pending_frames = []
-        return [self._stamp(FramePoses(
-            agent_id=self.agent_id, seq=0, frame_indices=np.asarray(idx, np.int64),
-            stamps=np.asarray(stamps, np.float64), kf_ids=np.asarray(kfs, np.int32),
-            T_kf_frame=np.stack(T)))]
+        """The frame poses not sent yet (call at the end of the stream), at most
+        `MAX_FRAMES_PER_MESSAGE` per message."""
+        out: list[Message] = []
+        while self._pending_frames:
+            batch = self._pending_frames[:MAX_FRAMES_PER_MESSAGE]
+            del self._pending_frames[:MAX_FRAMES_PER_MESSAGE]
+            idx, stamps, kfs, T = zip(*batch, strict=True)
+            out.append(self._stamp(FramePoses(
+                agent_id=self.agent_id, seq=0, frame_indices=np.asarray(idx, np.int64),
+                stamps=np.asarray(stamps, np.float64), kf_ids=np.asarray(kfs, np.int32),
+                T_kf_frame=np.stack(T))))
+        return out
 
     def on_ack(self, ack: Ack) -> int:
         """Forget every message the ack covers (`Outbox.on_ack`); returns how many left."""
@@ -212,6 +223,13 @@ class AgentLink:
         """The seq the next message gets."""
         return self._seq
 
+    def restart(self, incarnation: int) -> list[Message]:
+        """Start the stream over for a server that lost this agent's state (`restart_stream`:
+        new incarnation, the whole state again); returns the messages to publish."""
+        from cpslam.agent.rebase import restart_stream
+
+        return restart_stream(self, incarnation)
+
     def _stamp(self, msg: Message) -> Message:
         msg = msg.model_copy(update={"seq": self._seq, "incarnation": self.incarnation})
         self.outbox.add(self._seq, msg)
@@ -226,15 +244,16 @@ class AgentLink:
         if len(ids) > 1:
             T_prev = compose(invert(store.get(ids[-2]).T_world_cam), kf.T_world_cam)
         descriptor = np.asarray(self.describe(frame.rgb), np.float32)
+        descriptor = descriptor / np.linalg.norm(descriptor)
+        self._descriptors[kf.kf_id] = descriptor
         return self._stamp(KeyframeMsg(
             agent_id=self.agent_id, seq=0, kf_id=kf.kf_id, frame_index=kf.frame_index,
             stamp=kf.timestamp, world_epoch=self.epoch, T_world_cam=kf.T_world_cam,
-            T_prev_kf_kf=T_prev, descriptor=descriptor / np.linalg.norm(descriptor),
-            n_points=len(kf.point_ids)))
+            T_prev_kf_kf=T_prev, descriptor=descriptor, n_points=len(kf.point_ids)))
 
-    def _submap_delta(self) -> SubmapDelta | None:
-        """Own points that are new or moved enough since the server's copy, and own points
-        that disappeared."""
+    def _submap_delta(self, max_points: int | None = None) -> SubmapDelta | None:
+        """Own points that are new or moved enough since the server's copy (the first
+        `max_points` of them), and own points that disappeared."""
         self._submap_mappings = 0
         pm = self.odometry.point_map
         rows = (pm.agent_id == self.own).nonzero(as_tuple=True)[0]
@@ -243,6 +262,8 @@ class AgentLink:
         ids, rows = ids[order], rows[torch.from_numpy(order).to(rows.device)]
         feats = pm.features.detach()[rows].cpu().numpy().astype(np.float32)
         send, removed = self.mirror.select(ids, feats)
+        if max_points is not None:
+            send[np.nonzero(send)[0][max_points:]] = False
         if not send.any() and not len(removed):
             return None
         fields, received = encode_features(feats[send], self.mirror.codec)

@@ -3,8 +3,10 @@
 A resumed agent is the same incarnation: it keeps the incarnation id, its message counter (new
 messages continue the seq numbering, so the server takes them and ignores repeats), its outbox
 (resent at once: the server may never have had them), what it already sent of its own points,
-the last server update applied and its place in the group frame. Written atomically next to
-the odometry's state.pt as ``link.pt`` (loadable with ``torch.load(weights_only=True)``).
+the last server update applied, its place in the group frame, the server state its stream
+went to and the descriptors it sent (to stream afresh to a server that lost them). Written
+atomically next to the odometry's state.pt as ``link.pt`` (loadable with
+``torch.load(weights_only=True)``).
 """
 
 from __future__ import annotations
@@ -45,6 +47,10 @@ def link_state(link: AgentLink) -> dict:
         T_group_agent=torch.from_numpy(np.asarray(link.T_group_agent, np.float64).copy()),
         foreign_index=dict(link.foreign_index),
         frame_kf=torch.tensor(link._frame_kf, dtype=torch.int64),
+        frame_index=torch.tensor(link._frame_index, dtype=torch.int64),
+        server_state=-1 if link.server_state is None else int(link.server_state),
+        descriptor_kfs=torch.tensor(list(link._descriptors), dtype=torch.int64),
+        descriptors=[torch.from_numpy(d.copy()) for d in link._descriptors.values()],
         sent_ids=torch.from_numpy(link.mirror.ids.astype(np.int64)),
         sent_features=torch.from_numpy(link.mirror.features.astype(np.float32)),
         outbox=[
@@ -71,6 +77,12 @@ def load_link_state(link: AgentLink, state: dict) -> None:
     link.T_group_agent = state["T_group_agent"].cpu().numpy().copy()
     link.foreign_index = {str(k): int(v) for k, v in state["foreign_index"].items()}
     link._frame_kf = [int(k) for k in state["frame_kf"].tolist()]
+    link._frame_index = [int(i) for i in state["frame_index"].tolist()]
+    link.server_state = None if int(state["server_state"]) < 0 else int(state["server_state"])
+    link._descriptors = {
+        int(k): d.cpu().numpy().copy()
+        for k, d in zip(state["descriptor_kfs"].tolist(), state["descriptors"], strict=True)
+    }
     link.mirror.ids = state["sent_ids"].cpu().numpy().copy()
     link.mirror.features = state["sent_features"].cpu().numpy().astype(np.float32)
     link._pending_frames = [

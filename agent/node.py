@@ -111,6 +111,10 @@ class AgentNode:
         self._handles: list[Any] = []
         self._server_sub: Any = None
         self._decoder_sub: Any = None
+        self.online: Callable[[], bool] | None = None
+        """While this says False (the server is away, or back and not yet answered) messages
+        wait in the outbox instead of going out; None: always publish."""
+        self.restarts = 0
 
     # ------------------------------------------------------------------------- lifecycle
 
@@ -156,6 +160,8 @@ class AgentNode:
         topic = {"keyframe": "keyframe", "submap_delta": "submap",
                  "decoder_weights": "decoder", "frame_poses": "frames",
                  "update_ack": "update_ack"}
+        if self.online is not None and not self.online():
+            return  # kept by the outbox (acks of updates are repeated by the server's resend)
         for msg in messages:
             key = keys.agent_topic(self.session, self.agent_id, topic[msg.type])
             try:
@@ -217,6 +223,18 @@ class AgentNode:
         self.send(pending)
         self.link.outbox.mark_sent()
         return len(pending)
+
+    def restart_stream(self) -> int:
+        """The server lost this agent's acknowledged data (it came back under another state
+        id): stream the whole state again as a new incarnation (`AgentLink.restart`). Returns
+        the messages sent."""
+        with self._lock:
+            self.odometry.drain()
+            self.incarnation = new_incarnation()
+            out = self.link.restart(self.incarnation)
+        self.restarts += 1
+        self.send(out)
+        return len(out)
 
     def resend_due(self) -> int:
         """Publish again the messages unacknowledged ``transport.resend_after_s`` after they

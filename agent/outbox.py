@@ -91,6 +91,11 @@ class Outbox:
         self._items[seq] = (msg, size, self.now())
         self.bytes += size
 
+    def clear(self) -> None:
+        """Forget every waiting message and the ack floor (the stream starts over)."""
+        self._items.clear()
+        self.bytes, self.floor = 0, -1
+
     def messages(self) -> list[Message]:
         """Every waiting message, oldest first."""
         return [m for m, _, _ in self._items.values()]

@@ -270,8 +270,28 @@ def _bandwidth(report: dict) -> str:
             + _table(rows) + "\n\n" + _table(summary) + "\n" + note)
 
 
+def _transport(report: dict) -> str:
+    tcp, tls = report["links"]["tcp"], report["links"]["tls"]
+    ratio = report["ratio_tls_over_tcp"]
+    rows = [("figure", "TCP", "mutual TLS", "TLS / TCP")]
+    for size, r in ratio["latency_median"].items():
+        a, b = tcp["latency_ms"][size], tls["latency_ms"][size]
+        rows.append((f"{size} publish -> ack round trip, median (p95) ms",
+                     f"{a['median']} ({a['p95']})", f"{b['median']} ({b['p95']})", r))
+    for size, r in ratio["throughput"].items():
+        rows.append((f"{size} messages back to back, MB/s", tcp["throughput_MB_per_s"][size],
+                     tls["throughput_MB_per_s"][size], r))
+    a, b = tcp["keyframe_image_query_ms"], tls["keyframe_image_query_ms"]
+    rows.append(("640x480 keyframe image query, median ms", a["median"], b["median"],
+                 round(b["median"] / a["median"], 3)))
+    return ("Two processes on this machine over 127.0.0.1, shared memory off; the same run "
+            "measures plain TCP, then mutual TLS with `cpslam secure init` certificates.\n\n"
+            + _table(rows) + "\n")
+
+
 RENDERERS = {"odometry": _odometry, "loop_edges": _loop_edges, "collab": _collab,
              "rerun_overhead": _rerun_overhead, "persist": _persist, "flood": _flood,
+             "transport": _transport,
              "bandwidth": _bandwidth}
 
 

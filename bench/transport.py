@@ -10,9 +10,12 @@
 Both processes use TCP on 127.0.0.1 with shared memory off (what two machines would see,
 minus the wire), unless --shm. This process listens in router mode, the peer connects as client.
 With --tls DIR (a folder made by `cpslam secure init`) the link is Zenoh mutual TLS instead:
-this process listens with DIR/server.pem, the peer presents DIR/agent-0.pem.
+this process listens with DIR/server.pem, the peer presents DIR/agent-0.pem. With
+--compare-tls DIR both are measured in one run, TCP first, and the ratios TLS / TCP reported
+(--json writes the report for docs/results.md).
 
-Usage: python bench/transport.py [--quick] [--shm] [--tls DIR]
+Usage: python bench/transport.py [--quick] [--shm] [--tls DIR | --compare-tls DIR]
+           [--json bench/results/transport.json]
 """
 
 from __future__ import annotations
@@ -29,6 +32,9 @@ import threading
 import time
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from benchinfo import bench_header  # noqa: E402
+
 from cpslam import protocol
 from cpslam.common.bus import Sample, ZenohBus, ZenohSecurity
 from cpslam.protocol.samples import sample
@@ -43,6 +49,9 @@ def main() -> None:
     parser.add_argument("--shm", action="store_true", help="allow Zenoh shared memory")
     parser.add_argument("--tls", type=Path, metavar="DIR",
                         help="mutual TLS with the certificates of `cpslam secure init` in DIR")
+    parser.add_argument("--compare-tls", type=Path, metavar="DIR",
+                        help="measure TCP, then mutual TLS with the certificates in DIR")
+    parser.add_argument("--json", type=Path, help="also write the report here")
     parser.add_argument("--peer", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--connect", help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -50,23 +59,38 @@ def main() -> None:
         run_peer(args.connect, args.shm, args.tls)
         return
 
+    if args.compare_tls is not None:
+        links = {"tcp": measure(args.quick, args.shm, None),
+                 "tls": measure(args.quick, args.shm, args.compare_tls)}
+        report = {**bench_header("transport", sys.argv), "links": links,
+                  "ratio_tls_over_tcp": ratios(links["tcp"], links["tls"])}
+    else:
+        report = measure(args.quick, args.shm, args.tls)
+    text = json.dumps(report, indent=2)
+    if args.json is not None:
+        args.json.write_text(text + "\n")
+    print(text)
+
+
+def measure(quick: bool, shm: bool, tls: Path | None) -> dict:
+    """The figures of one link (TCP, or mutual TLS with the certificates in `tls`)."""
     # "localhost" is a name in the server certificate of `cpslam secure init`.
-    endpoint = f"tls/localhost:{free_port()}" if args.tls else f"tcp/127.0.0.1:{free_port()}"
-    bus = ZenohBus(mode="router", listen=[endpoint], shared_memory=args.shm,
-                   security=security(args.tls, "server"))
+    endpoint = f"tls/localhost:{free_port()}" if tls else f"tcp/127.0.0.1:{free_port()}"
+    bus = ZenohBus(mode="router", listen=[endpoint], shared_memory=shm,
+                   security=security(tls, "server"))
     present = threading.Event()
     bus.watch_liveliness(ALIVE, on_join=lambda key: present.set())
     cmd = [sys.executable, __file__, "--peer", "--connect", endpoint,
-           *(["--tls", str(args.tls)] if args.tls else [])]
-    peer = subprocess.Popen(cmd + (["--shm"] if args.shm else []), stdin=subprocess.PIPE)
+           *(["--tls", str(tls)] if tls else [])]
+    peer = subprocess.Popen(cmd + (["--shm"] if shm else []), stdin=subprocess.PIPE)
     try:
         if not present.wait(30.0):
             raise RuntimeError("the benchmark peer did not come up within 30 s")
-        scale = 0.25 if args.quick else 1.0
-        report = {
+        scale = 0.25 if quick else 1.0
+        return {
             "machine": machine(),
-            "transport": {"endpoint": endpoint, "mutual_tls": args.tls is not None,
-                          "shared_memory": args.shm},
+            "transport": {"endpoint": endpoint, "mutual_tls": tls is not None,
+                          "shared_memory": shm},
             "latency_ms": {
                 label: latency(bus, size, max(5, int(rounds * scale)))
                 for label, size, rounds in (
@@ -89,7 +113,16 @@ def main() -> None:
         except subprocess.TimeoutExpired:
             peer.kill()
         bus.close()
-    print(json.dumps(report, indent=2))
+
+
+def ratios(tcp: dict, tls: dict) -> dict:
+    """TLS / TCP of the median latencies and the throughputs."""
+    return {
+        "latency_median": {k: round(tls["latency_ms"][k]["median"] / v["median"], 3)
+                           for k, v in tcp["latency_ms"].items()},
+        "throughput": {k: round(tls["throughput_MB_per_s"][k] / v, 3)
+                       for k, v in tcp["throughput_MB_per_s"].items()},
+    }
 
 
 # -- the peer process --------------------------------------------------------------------------

@@ -15,7 +15,7 @@ Everything lives under ``cpslam/<session>/``::
     server/status                     Status            anyone -> server (get; server answers)
     server/control                    Control           operator -> server -> agents (put)
     alive/agent/<agent>               liveliness token of an agent
-    alive/server                      liveliness token of the server
+    alive/server/<state>              liveliness token of the server (its state id)
     run/barrier                       opaque marker     `cpslam run` only (in-process bus)
 
 Ids (session, agent, group) are 1-64 characters of ``[A-Za-z0-9_-]``, so they never contain
@@ -55,6 +55,7 @@ __all__ = [
     "alive_agent",
     "alive_agents",
     "alive_server",
+    "alive_servers",
     "alive_all",
     "run_barrier",
     "parse_agent_key",
@@ -62,6 +63,7 @@ __all__ = [
     "parse_server_agent_key",
     "parse_group_decoder",
     "parse_alive_agent",
+    "parse_alive_server",
     "key_subject",
 ]
 
@@ -77,6 +79,7 @@ SERVER_AGENT_TOPICS: tuple[str, ...] = ("update", "ack", "refusal")
 _ID_RE = re.compile(r"[A-Za-z0-9_-]{1,64}")
 _KF_RE = re.compile(r"0|[1-9][0-9]{0,9}")
 _MAX_KF = 2**31 - 1
+_MAX_STATE_ID = 2**63 - 1
 
 
 def check_id(value: object, what: str = "id") -> str:
@@ -220,9 +223,18 @@ def alive_agents(session: str) -> str:
     return f"{_base(session)}/alive/agent/*"
 
 
-def alive_server(session: str) -> str:
-    """Liveliness token key of the server."""
-    return f"{_base(session)}/alive/server"
+def alive_server(session: str, state_id: int) -> str:
+    """Liveliness token key of the server holding the state `state_id` (`parse_alive_server`):
+    an agent that sees another id come up knows the server lost what it had acknowledged."""
+    if not isinstance(state_id, int) or not 0 < state_id <= _MAX_STATE_ID:
+        raise ProtocolError(f"server state id must be an int in [1, {_MAX_STATE_ID}], "
+                            f"got {state_id!r:.40}")
+    return f"{_base(session)}/alive/server/{state_id}"
+
+
+def alive_servers(session: str) -> str:
+    """Wildcard over the server's liveliness token (whatever its state id)."""
+    return f"{_base(session)}/alive/server/*"
 
 
 def alive_all(session: str) -> str:
@@ -290,6 +302,16 @@ def parse_alive_agent(session: str, key: str) -> str:
     if len(parts) != 3 or parts[:2] != ["alive", "agent"]:
         raise ProtocolError(f"liveliness key: expected alive/agent/<id>, got {key!r:.120}")
     return check_id(parts[2], "agent id")
+
+
+def parse_alive_server(session: str, key: str) -> int:
+    """Server state id from a liveliness key ``cpslam/<session>/alive/server/<state>``."""
+    parts = _chunks(session, key, "liveliness key")
+    if (len(parts) != 3 or parts[:2] != ["alive", "server"] or not parts[2].isdigit()
+            or not 0 < int(parts[2]) <= _MAX_STATE_ID):
+        raise ProtocolError(f"liveliness key: expected alive/server/<state id in [1, "
+                            f"{_MAX_STATE_ID}]>, got {key!r:.120}")
+    return int(parts[2])
 
 
 def key_subject(session: str, key: object) -> tuple[str, str, str] | None:

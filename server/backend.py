@@ -18,6 +18,7 @@ after a merge, a `GroupDecoder`. `finalise` runs the last pose graph, the map re
 from __future__ import annotations
 
 import logging
+import secrets
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -50,7 +51,7 @@ if TYPE_CHECKING:
     from cpslam.common.field import Decoders, FieldSpec
     from cpslam.server.federation import FederatedRound
 
-__all__ = ["Backend", "LoopRecord", "Outgoing"]
+__all__ = ["Backend", "LoopRecord", "Outgoing", "new_state_id"]
 
 logger = logging.getLogger(__name__)
 
@@ -115,6 +116,9 @@ class Backend:
         update_max_points: int = 200_000,
     ) -> None:
         self.verify_budget_s = verify_budget_s
+        self.state_id = new_state_id()
+        """Names what this back end holds (kept by a restore): agents compare it across a
+        server restart to learn whether their acknowledged data survived."""
         self.loop_cfg, self.fed_cfg = loop, federation
         self.pg_cfg, self.refine_cfg = pose_graph, refinement
         self.now = now
@@ -383,6 +387,7 @@ class Backend:
     def status(self) -> dict:
         """JSON summary for the status query: agents, groups, loops, rounds."""
         return {
+            "state_id": self.state_id,
             "agents": {a: r.status() for a, r in self.registry.agents.items()},
             "groups": {g.group_id: {"members": g.members, "epoch": g.epoch, "round": g.round}
                        for g in self.groups.groups.values()},
@@ -397,6 +402,7 @@ class Backend:
         ``weights_only=True``). Open federated rounds are not kept: agents resubmit."""
         loops = self.pipeline.state_dict()
         return {
+            "state_id": self.state_id,
             "registry": self.registry.state_dict(), "groups": self.groups.state_dict(),
             "foreign": self.sharing.foreign.state_dict(),
             "loops": loops["loops"],
@@ -409,6 +415,7 @@ class Backend:
 
     def load_state_dict(self, state: dict) -> None:
         """Restore a `state_dict`; the loop database is refilled from the keyframes."""
+        self.state_id = int(state["state_id"])
         self.registry.load_state_dict(state["registry"])
         self.groups.load_state_dict(state["groups"])
         self.sharing.foreign.load_state_dict(state["foreign"])
@@ -425,6 +432,11 @@ class Backend:
                 if (agent, kf) not in new:
                     self.database.add(agent, kf, rec.keyframes[kf].descriptor,
                                       self.groups.group_of(agent).group_id)
+
+
+def new_state_id() -> int:
+    """A random non-zero 63-bit id, from the OS (a fresh back end's state is a new one)."""
+    return secrets.randbits(63) or 1
 
 
 def _to_groups(decoders: list[GroupDecoder]) -> list[Outgoing]:

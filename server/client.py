@@ -109,7 +109,7 @@ def finalise(
     s = cfg.transport.session
     present, gone = threading.Event(), threading.Event()
     with bus:
-        watch = bus.watch_liveliness(keys.alive_server(s), on_join=lambda _k: present.set(),
+        watch = bus.watch_liveliness(keys.alive_servers(s), on_join=lambda _k: present.set(),
                                      on_leave=lambda _k: gone.set())
         if not present.wait(min(timeout, 10.0)):
             watch.close()

@@ -4,7 +4,10 @@
 the agents' liveliness; `poll` decodes what arrived (a payload that fails validation is logged
 with its key, counted and dropped, never raised), feeds `Backend.handle` in (agent, seq) order,
 runs `Backend.step` and publishes the `Outgoing` messages on their keys. Keyframe images are
-pulled with a bus query to the agent's image queryable (`fetch_image`). A status queryable
+pulled with a bus query to the agent's image queryable (`fetch_image`). The server's
+liveliness token carries the back end's state id (``alive/server/<state>``, kept by a restored
+state): an agent that sees another id knows the acknowledged data is gone and streams its
+whole state again (`cpslam.agent.daemon`). A status queryable
 answers with `Backend.status()`. `finalise` runs the back end's final optimisation and writes
 the run folder (`export_run`).
 
@@ -137,10 +140,10 @@ class ServerNode:
             self.bus.declare_queryable(keys.server_status(s), self._serve_status),
             self.bus.watch_liveliness(keys.alive_agents(s), on_join=self._joined,
                                       on_leave=self._left),
-            self.bus.declare_liveliness(keys.alive_server(s)),
+            self.bus.declare_liveliness(keys.alive_server(s, self.backend.state_id)),
         ]
         self._snapshot()
-        logger.info("server node on session %s", s)
+        logger.info("server node on session %s (state %d)", s, self.backend.state_id)
         return self
 
     def close(self) -> None:

@@ -30,14 +30,11 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
 
 from cpslam.common.bounds import CappedCounter, LogThrottle, tensor_mismatch
-from cpslam.common.field import NeuralPointMap
 from cpslam.common.geometry import compose, invert
 from cpslam.protocol import (
     Ack,
@@ -50,7 +47,9 @@ from cpslam.protocol import (
 )
 from cpslam.protocol.updates import MAX_ACK_RANGES
 from cpslam.server.bases import DecoderBases, apply_delta
+from cpslam.server.plausibility import implausible
 from cpslam.server.points import PointTable
+from cpslam.server.records import AgentRecord, KeyframeRecord, record_from_state, record_state
 
 if TYPE_CHECKING:
     from cpslam.common.config import LimitsConfig
@@ -60,100 +59,6 @@ __all__ = ["AgentRecord", "KeyframeRecord", "Registry", "registry_args"]
 logger = logging.getLogger(__name__)
 
 AGENT_MESSAGES = (KeyframeMsg, SubmapDelta, DecoderWeights, FramePoses)
-AGENT_DROP_REASONS = 32
-"""Distinct drop reasons counted per agent (the rest under "other")."""
-
-
-@dataclass
-class KeyframeRecord:
-    """One keyframe as the agent reported it, pose mapped into the agent's own world."""
-
-    kf_id: int
-    frame_index: int
-    stamp: float
-    T_own_kf: np.ndarray
-    """Camera pose in the agent's own world [4, 4]."""
-    descriptor: np.ndarray
-    T_prev_kf_kf: np.ndarray | None
-
-
-@dataclass
-class AgentRecord:
-    """Everything accepted from one agent."""
-
-    agent_id: str
-    index: int
-    """Stable small integer (join order); the agent key of the neural point maps."""
-    keyframes: dict[int, KeyframeRecord] = field(default_factory=dict)
-    frames: dict[int, tuple[int, np.ndarray, float]] = field(default_factory=dict)
-    """Frame index -> (keyframe id, T_kf_frame [4, 4], stamp)."""
-    points: PointTable = field(default_factory=PointTable)
-    """Sub-map points whose anchor keyframe is known."""
-    pending_points: PointTable = field(default_factory=PointTable)
-    """Points waiting for their anchor keyframe."""
-    pending_frames: dict[int, tuple[int, np.ndarray, float]] = field(default_factory=dict)
-    decoder: dict[str, np.ndarray] | None = None
-    """Latest decoder weights (float32 numpy by name)."""
-    decoder_samples: int = 0
-    decoder_round: int = 0
-    decoder_group: str = ""
-    decoder_seq: int = -1
-    """Seq of the message `decoder` came from (the base of the agent's next own delta)."""
-    alignments: dict[int, np.ndarray] = field(default_factory=lambda: {0: np.eye(4)})
-    """Epoch -> T_group_agent the agent was told at that epoch (0: identity)."""
-    seq_floor: int = -1
-    """Every seq <= seq_floor was handled."""
-    seqs_above: set[int] = field(default_factory=set)
-    incarnation: int | None = None
-    """Incarnation of the agent's first message; others are refused."""
-    raised: list[int] = field(default_factory=list)
-    """Recent seqs whose handling raised (reported in acks as dropped)."""
-    alive: bool = True
-    messages: int = 0
-    bytes: int = 0
-    dropped: CappedCounter = field(default_factory=lambda: CappedCounter(AGENT_DROP_REASONS))
-    feature_dim: int | None = None
-    kf_seqs: dict[int, int] = field(default_factory=dict)
-    """Keyframe id -> seq of its message (this run only; checks that ids increase with seq)."""
-
-    @property
-    def kf_ids(self) -> list[int]:
-        return sorted(self.keyframes)
-
-    def submap(self, feature_dim: int, cell_size: float) -> NeuralPointMap:
-        """The sub-map in the agent's own world as a `NeuralPointMap` (agent key = index)."""
-        return self.points.to_point_map(
-            self.index, {k: r.T_own_kf for k, r in self.keyframes.items()}, feature_dim, cell_size
-        )
-
-    def status(self) -> dict:
-        """The record's counts for the server's status query."""
-        return {"index": self.index, "alive": self.alive, "keyframes": len(self.keyframes),
-                "frames": len(self.frames), "points": len(self.points),
-                "pending": len(self.pending_points) + len(self.pending_frames),
-                "messages": self.messages, "bytes": self.bytes, "acked_seq": self.seq_floor,
-                "dropped": dict(self.dropped)}
-
-    def odometry(self) -> dict[int, np.ndarray]:
-        """Keyframe poses in the own world chained from the relative poses T_prev_kf_kf.
-
-        The chain starts at the first keyframe's reported pose; where a link is missing (a
-        first keyframe or a gap), the reported poses give it. Corrections the agent applied
-        from server updates therefore do not leak into the odometry.
-        """
-        out: dict[int, np.ndarray] = {}
-        prev: KeyframeRecord | None = None
-        for kf in self.kf_ids:
-            rec = self.keyframes[kf]
-            if prev is None:
-                out[kf] = rec.T_own_kf.copy()
-            else:
-                rel = rec.T_prev_kf_kf
-                if rel is None:
-                    rel = compose(invert(prev.T_own_kf), rec.T_own_kf)
-                out[kf] = compose(out[prev.kf_id], rel)
-            prev = rec
-        return out
 
 
 class Registry:
@@ -318,7 +223,7 @@ class Registry:
     # ---------------------------------------------------------------------------- appliers
 
     def _apply(self, rec: AgentRecord, msg: Message) -> str:
-        reason = self._implausible(rec, msg)
+        reason = implausible(msg, rec.kf_seqs, self.max_translation_m)
         if reason:
             return reason
         if isinstance(msg, KeyframeMsg):
@@ -444,31 +349,6 @@ class Registry:
                     received=_ranges(rec.seqs_above)[:MAX_ACK_RANGES],
                     dropped=list(rec.raised))]
 
-    def _implausible(self, rec: AgentRecord, msg: Message) -> str:
-        """Why the message's poses or keyframe id cannot be right ("" if they can)."""
-        if isinstance(msg, KeyframeMsg):
-            poses = [("T_world_cam", msg.T_world_cam), ("T_prev_kf_kf", msg.T_prev_kf_kf)]
-        elif isinstance(msg, FramePoses):
-            poses = [("T_kf_frame", msg.T_kf_frame)]
-        else:
-            return ""
-        for name, T in poses:
-            if T is None or T.size == 0:
-                continue
-            if not np.isfinite(T).all():
-                return f"field {name} is not finite"
-            t_max = float(np.linalg.norm(T[..., :3, 3], axis=-1).max())
-            if self.max_translation_m is not None and t_max > self.max_translation_m:
-                return (f"field {name} has |t| {t_max:.6g} m, expected at most "
-                        f"{self.max_translation_m:g} m (limits.max_translation_m)")
-        if isinstance(msg, KeyframeMsg) and rec.kf_seqs:
-            kf, seq = int(msg.kf_id), int(msg.seq)
-            for other, other_seq in rec.kf_seqs.items():
-                if other != kf and (other_seq < seq) != (other < kf):
-                    return (f"field kf_id {kf} (seq {seq}) does not increase with seq: "
-                            f"keyframe {other} came with seq {other_seq}")
-        return ""
-
     def _drop(self, rec: AgentRecord | None, reason: str, what: str = "", count: int = 1) -> None:
         self.dropped.add(reason, count)
         if rec is not None:
@@ -483,62 +363,15 @@ class Registry:
 
     def state_dict(self) -> dict:
         """Plain data (python, torch tensors) of every record; see `load_state_dict`."""
-        agents = []
-        for rec in self.agents.values():
-            agents.append({
-                "agent_id": rec.agent_id, "index": rec.index,
-                "keyframes": [
-                    {"kf_id": k.kf_id, "frame_index": k.frame_index, "stamp": k.stamp,
-                     "T_own_kf": _t(k.T_own_kf), "descriptor": _t(k.descriptor),
-                     "T_prev_kf_kf": None if k.T_prev_kf_kf is None else _t(k.T_prev_kf_kf)}
-                    for k in rec.keyframes.values()
-                ],
-                "frames": _frames_state(rec.frames),
-                "pending_frames": _frames_state(rec.pending_frames),
-                "points": rec.points.state_dict(),
-                "pending_points": rec.pending_points.state_dict(),
-                "decoder": None if rec.decoder is None else {k: _t(v) for k, v in
-                                                               rec.decoder.items()},
-                "decoder_samples": rec.decoder_samples, "decoder_round": rec.decoder_round,
-                "decoder_group": rec.decoder_group,
-                "alignments": {int(e): _t(T) for e, T in rec.alignments.items()},
-                "seq_floor": rec.seq_floor, "seqs_above": sorted(rec.seqs_above),
-                "alive": rec.alive, "messages": rec.messages, "bytes": rec.bytes,
-                "incarnation": rec.incarnation, "raised": list(rec.raised),
-                "dropped": dict(rec.dropped),
-            })
-        return {"agents": agents, "dropped": dict(self.dropped),
+        return {"agents": [record_state(rec) for rec in self.agents.values()],
+                "dropped": dict(self.dropped),
                 "new_keyframes": [list(x) for x in self.new_keyframes]}
 
     def load_state_dict(self, state: dict) -> None:
         """Replace the content by a `state_dict` (pending decoder submissions are not kept)."""
         self.agents = {}
         for a in state["agents"]:
-            rec = AgentRecord(a["agent_id"], int(a["index"]))
-            for k in a["keyframes"]:
-                rec.keyframes[int(k["kf_id"])] = KeyframeRecord(
-                    int(k["kf_id"]), int(k["frame_index"]), float(k["stamp"]),
-                    _n(k["T_own_kf"]), _n(k["descriptor"]),
-                    None if k["T_prev_kf_kf"] is None else _n(k["T_prev_kf_kf"]))
-            rec.frames = _frames_load(a["frames"])
-            rec.pending_frames = _frames_load(a["pending_frames"])
-            rec.points = PointTable.from_state_dict(a["points"])
-            rec.pending_points = PointTable.from_state_dict(a["pending_points"])
-            rec.decoder = None if a["decoder"] is None else {
-                k: _n(v) for k, v in a["decoder"].items()}
-            rec.decoder_samples = int(a["decoder_samples"])
-            rec.decoder_round = int(a["decoder_round"])
-            rec.decoder_group = str(a["decoder_group"])
-            rec.alignments = {int(e): _n(T) for e, T in a["alignments"].items()}
-            rec.seq_floor, rec.seqs_above = int(a["seq_floor"]), set(a["seqs_above"])
-            rec.alive, rec.messages, rec.bytes = bool(a["alive"]), int(a["messages"]), int(
-                a["bytes"])
-            rec.dropped = CappedCounter(AGENT_DROP_REASONS)
-            for reason, count in a["dropped"].items():
-                rec.dropped.add(reason, count)
-            inc = a.get("incarnation")
-            rec.incarnation = None if inc is None else int(inc)
-            rec.raised = [int(x) for x in a.get("raised", [])]
+            rec = record_from_state(a)
             self.agents[rec.agent_id] = rec
         self.dropped = CappedCounter(self.max_counter_keys)
         for reason, count in state["dropped"].items():
@@ -573,31 +406,3 @@ def _ranges(seqs: set[int]) -> list[tuple[int, int]]:
         else:
             out.append((s, s))
     return out
-
-
-def _t(a: np.ndarray) -> torch.Tensor:
-    return torch.from_numpy(np.ascontiguousarray(a).copy())
-
-
-def _n(t: torch.Tensor) -> np.ndarray:
-    return t.cpu().numpy().copy()
-
-
-def _frames_state(frames: dict[int, tuple[int, np.ndarray, float]]) -> dict:
-    order = sorted(frames)
-    return {
-        "index": torch.tensor(order, dtype=torch.int64),
-        "kf": torch.tensor([frames[f][0] for f in order], dtype=torch.int64),
-        "T_kf_frame": _t(np.stack([frames[f][1] for f in order])) if order
-        else torch.zeros(0, 4, 4, dtype=torch.float64),
-        "stamp": torch.tensor([frames[f][2] for f in order], dtype=torch.float64),
-    }
-
-
-def _frames_load(state: dict) -> dict[int, tuple[int, np.ndarray, float]]:
-    T = state["T_kf_frame"].cpu().numpy()
-    return {
-        int(f): (int(k), T[i].copy(), float(s))
-        for i, (f, k, s) in enumerate(zip(state["index"].tolist(), state["kf"].tolist(),
-                                          state["stamp"].tolist(), strict=True))
-    }

@@ -4,7 +4,7 @@
   outputs exist and the global trajectories agree with ground truth;
 - faults: an agent that joins late, an agent killed with SIGKILL (the server keeps what it
   had delivered), a server killed and restarted on the same run folder (agents resend, nothing
-  is lost).
+  is lost), a server killed and restarted without its state (agents stream everything again).
 """
 
 from __future__ import annotations
@@ -154,3 +154,31 @@ def test_server_restart_loses_nothing(tmp_path: Path, endpoint: str, apartment,
     assert tum_rows(out / "trajectories" / "agent_0_global.tum") == 90
     agent_metrics = json.loads((out / "agent_0" / "metrics.json").read_text())
     assert agent_metrics["unacknowledged"] == 0 and agent_metrics["server_rejoins"] >= 1
+    assert agent_metrics["stream_restarts"] == 0  # the same state id came back
+
+
+def test_server_restart_without_state_loses_nothing(tmp_path: Path, endpoint: str, apartment,
+                                                    daemons) -> None:
+    first_out, out, s = tmp_path / "first", tmp_path / "run", "fresh"
+    first = Daemon("server1", server_args(endpoint, s, first_out, "--no-report"), tmp_path)
+    agent = Daemon("agent0", agent_args(apartment.agent_dirs[0], "0", endpoint, s, out,
+                                        "--frames", "0:90"), tmp_path)
+    daemons.extend([first, agent])
+
+    wait_until("keyframes to reach the first server",
+               lambda: agent_field(endpoint, s, "0", "keyframes", 0) >= 4, 300, first, agent)
+    first.signal(signal.SIGKILL)
+    first.proc.wait(10)
+    second = Daemon("server2", server_args(endpoint, s, out, "--no-report"), tmp_path)
+    daemons.append(second)
+    assert agent.wait(600) == 0, agent.tail() + "\n" + second.tail()
+    finalise(endpoint, s)
+    assert second.wait(120) == 0, second.tail()
+    assert "restored server state" not in second.text()
+    assert "streaming everything again" in agent.text()
+    assert tum_rows(out / "trajectories" / "agent_0_global.tum") == 90
+    agent_metrics = json.loads((out / "agent_0" / "metrics.json").read_text())
+    assert agent_metrics["unacknowledged"] == 0 and agent_metrics["stream_restarts"] == 1
+    server_metrics = json.loads((out / "metrics.json").read_text())
+    assert server_metrics["agents"]["0"]["frames"] == 90
+    assert not server_metrics["agents"]["0"]["dropped"]

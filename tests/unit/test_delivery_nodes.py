@@ -239,7 +239,7 @@ def test_a_full_outbox_holds_frames_back_until_acks_make_room(tmp_path, caplog) 
     thread.start()
     try:
         with caplog.at_level("INFO", logger="cpslam.agent.daemon"):
-            _wait_for_room(node, presence, 0, stop)
+            _wait_for_room(node, presence, stop)
     finally:
         stop.set()
         thread.join(timeout=60)

@@ -110,7 +110,8 @@ def test_every_key_expression_is_documented():
         keys.server_control("S"),
         keys.alive_agent("S", "A"),
         keys.alive_agents("S"),
-        keys.alive_server("S"),
+        keys.alive_server("S", 1),
+        keys.alive_servers("S"),
         keys.alive_all("S"),
         keys.all_agents("S"),
         keys.all_agents_topic("S", "keyframe"),
@@ -120,4 +121,5 @@ def test_every_key_expression_is_documented():
         assert key.startswith("cpslam/S/")
         rel = key[len("cpslam/S/") :].replace("/A/", "/<agent>/").replace("/G/", "/<group>/")
         rel = re.sub(r"/A$", "/<agent>", rel).replace("/image/7", "/image/<kf>")
+        rel = rel.replace("alive/server/1", "alive/server/<state>")
         assert f"`{rel}`" in TEXT, f"key {rel!r} is not in {DOC.name}"

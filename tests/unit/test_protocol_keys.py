@@ -37,7 +37,12 @@ def test_server_and_liveliness_keys():
     assert keys.server_control(S) == "cpslam/demo/server/control"
     assert keys.alive_agent(S, A) == "cpslam/demo/alive/agent/agent-0"
     assert keys.alive_agents(S) == "cpslam/demo/alive/agent/*"
-    assert keys.alive_server(S) == "cpslam/demo/alive/server"
+    assert keys.alive_server(S, 42) == "cpslam/demo/alive/server/42"
+    assert keys.alive_servers(S) == "cpslam/demo/alive/server/*"
+    assert keys.parse_alive_server(S, keys.alive_server(S, 2**63 - 1)) == 2**63 - 1
+    for bad in (0, -1, 2**63, "7"):
+        with pytest.raises(ProtocolError):
+            keys.alive_server(S, bad)
     assert keys.alive_all(S) == "cpslam/demo/alive/**"
     assert keys.run_barrier(S) == "cpslam/demo/run/barrier"
 
@@ -67,12 +72,14 @@ def test_wildcards_match_exactly_their_keys():
         keys.server_status(S),
         keys.server_control(S),
         keys.alive_agent(S, A),
-        keys.alive_server(S),
+        keys.alive_server(S, 7),
     ]
     hits = {k for k in everything if _matches(keys.all_agents(S), k)}
     assert hits == {keys.agent_topic(S, A, t) for t in keys.AGENT_TOPICS}
     hits = {k for k in everything if _matches(keys.alive_all(S), k)}
-    assert hits == {keys.alive_agent(S, A), keys.alive_server(S)}
+    assert hits == {keys.alive_agent(S, A), keys.alive_server(S, 7)}
+    hits = {k for k in everything if _matches(keys.alive_servers(S), k)}
+    assert hits == {keys.alive_server(S, 7)}
     assert [k for k in everything if _matches(keys.agent_image_queryable(S, A), k)] == [
         keys.agent_image(S, A, 3)
     ]
@@ -121,6 +128,11 @@ def test_key_subject_names_the_agent_or_group_of_a_key():
         (keys.parse_group_decoder, "cpslam/demo/server/group/g/update"),
         (keys.parse_alive_agent, "cpslam/demo/alive/server"),
         (keys.parse_alive_agent, b"cpslam/demo/alive/agent/a"),
+        (keys.parse_alive_server, "cpslam/demo/alive/server"),
+        (keys.parse_alive_server, "cpslam/demo/alive/server/0"),
+        (keys.parse_alive_server, "cpslam/demo/alive/server/x"),
+        (keys.parse_alive_server, "cpslam/demo/alive/server/9223372036854775808"),
+        (keys.parse_alive_server, "cpslam/demo/alive/agent/a"),
     ],
 )
 def test_parse_rejects(parse, key):

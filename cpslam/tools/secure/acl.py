@@ -12,7 +12,7 @@ and everything else is denied:
 - the operator may query ``server/status``, put on ``server/control`` (finalise, shutdown)
   and watch the server's presence, nothing else;
 - everyone receives subscriber declarations (key expressions only: Zenoh clients need them
-  to send) and the server's presence token (``alive/server``), no one another peer's.
+  to send) and the server's presence token (``alive/server/<state>``), no one another peer's.
 
 The key expressions come from `cpslam.protocol.keys`; "ingress" is what a peer sends the
 router, "egress" what the router forwards to it. The server's own session is local to the
@@ -55,7 +55,7 @@ def _agent_rules(session: str, agent_id: str) -> list[dict[str, Any]]:
     images = k(keys.agent_image_queryable, agent_id)
     to_agent = k(keys.server_agent_all, agent_id)
     decoders = k(keys.all_group_decoders)
-    alive_server = k(keys.alive_server)
+    alive_server = k(keys.alive_servers)
     p = f"agent {agent_id}: "
     return [
         _rule(p + "publish", "ingress", ["put"], own_topics),
@@ -72,7 +72,7 @@ def _agent_rules(session: str, agent_id: str) -> list[dict[str, Any]]:
 def _operator_rules(session: str, operator: str) -> list[dict[str, Any]]:
     k = lambda build, *args: _keys_for(session, build, *args)  # noqa: E731
     status, control, alive_server = k(keys.server_status), k(keys.server_control), \
-        k(keys.alive_server)
+        k(keys.alive_servers)
     p = f"operator {operator}: "
     return [
         _rule(p + "status", "ingress", ["query"], [status]),
@@ -101,7 +101,7 @@ def access_control(session: str, agent_ids: list[str], operators: list[str]) -> 
     shared = [_rule("everyone: subscriber declarations", "egress", ["declare_subscriber"],
                     [f"{base}/**"]),
               _rule("everyone: server presence", "egress", ["liveliness_token"],
-                    [_keys_for(session, keys.alive_server)])]
+                    [_keys_for(session, keys.alive_servers)])]
     rules, subjects, policies = [*shared], [], []
     for name, own in [*((a, _agent_rules(session, a)) for a in agent_ids),
                       *((o, _operator_rules(session, o)) for o in operators)]:
