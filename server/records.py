@@ -93,6 +93,16 @@ class AgentRecord:
                 "messages": self.messages, "bytes": self.bytes, "acked_seq": self.seq_floor,
                 "dropped": dict(self.dropped)}
 
+    def points_after(self, point_ids: np.ndarray, removed_ids: np.ndarray) -> int:
+        """Points held (waiting ones included) once a delta with these ids is applied."""
+        tables = (self.points, self.pending_points)
+        new = np.ones(point_ids.shape[0], bool)
+        gone = 0
+        for table in tables:
+            new &= ~np.isin(point_ids, table.ids)
+            gone += int(np.isin(removed_ids, table.ids).sum())
+        return sum(len(t) for t in tables) + int(new.sum()) - gone
+
     def odometry(self) -> dict[int, np.ndarray]:
         """Keyframe poses in the own world chained from the relative poses T_prev_kf_kf.
 

@@ -54,7 +54,7 @@ from cpslam.server.records import AgentRecord, KeyframeRecord, record_from_state
 if TYPE_CHECKING:
     from cpslam.common.config import LimitsConfig
 
-__all__ = ["AgentRecord", "KeyframeRecord", "Registry", "registry_args"]
+__all__ = ["Registry", "registry_args"]
 
 logger = logging.getLogger(__name__)
 
@@ -83,6 +83,10 @@ class Registry:
         max_translation_m: largest |t| (m) of a reported pose (None: only finiteness).
         max_federated_samples: largest sample count a decoder submission may claim.
         max_counter_keys: distinct drop reasons counted (the rest under "other").
+        max_keyframes_per_agent: keyframes kept per agent; further ones are dropped (None: no
+            cap).
+        max_points_per_agent: points kept per agent (waiting ones included); a delta that
+            would go beyond it is dropped whole (None: no cap).
         now: monotonic clock of the throttled log lines.
     """
 
@@ -102,8 +106,12 @@ class Registry:
         max_translation_m: float | None = None,
         max_federated_samples: int | None = None,
         max_counter_keys: int = 1024,
+        max_keyframes_per_agent: int | None = None,
+        max_points_per_agent: int | None = None,
         now: Callable[[], float] = time.monotonic,
     ) -> None:
+        self.max_keyframes_per_agent = max_keyframes_per_agent
+        self.max_points_per_agent = max_points_per_agent
         self.feature_dim = int(feature_dim)
         self.decoder_shapes = decoder_shapes
         self.first_seq = int(first_seq)
@@ -238,6 +246,9 @@ class Registry:
         kf = int(msg.kf_id)
         if kf in rec.keyframes:
             return f"keyframe {kf} already known (a different seq)"
+        cap = self.max_keyframes_per_agent
+        if cap is not None and len(rec.keyframes) >= cap:
+            return f"already {cap} keyframes of this agent (limits.max_keyframes_per_agent)"
         align = rec.alignments.get(int(msg.world_epoch))
         if align is None:
             return f"world_epoch {msg.world_epoch} was never sent to this agent"
@@ -266,6 +277,13 @@ class Registry:
         if self.max_removed_per_message is not None and m > self.max_removed_per_message:
             return (f"field removed_ids has {m} ids, expected at most "
                     f"{self.max_removed_per_message} (limits.max_removed_per_message)")
+        cap = self.max_points_per_agent
+        held = len(rec.points) + len(rec.pending_points)
+        # The exact count (a search over the tables) only when the delta could pass the cap.
+        if cap is not None and held + msg.point_ids.size > cap and (
+                after := rec.points_after(msg.point_ids, msg.removed_ids)) > cap:
+            return (f"sub-map delta would hold {after} points of this agent, expected at most "
+                    f"{cap} (limits.max_points_per_agent)")
         seq = int(msg.seq)
         # Removal and replacement touch both tables: a newer message supersedes a waiting one.
         for table in (rec.points, rec.pending_points):
@@ -394,6 +412,8 @@ def registry_args(limits: LimitsConfig, descriptor_dim: int) -> dict[str, Any]:
         max_translation_m=limits.max_translation_m,
         max_federated_samples=limits.max_federated_samples,
         max_counter_keys=limits.max_counter_keys,
+        max_keyframes_per_agent=limits.max_keyframes_per_agent,
+        max_points_per_agent=limits.max_points_per_agent,
     )
 
 

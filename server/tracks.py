@@ -15,7 +15,8 @@ import numpy as np
 
 from cpslam.common.geometry import compose, invert
 from cpslam.server.pose_graph import AgentTrajectory, PoseGraph, PoseGraphResult, loop_sigmas
-from cpslam.server.registry import AgentRecord, Registry
+from cpslam.server.records import AgentRecord
+from cpslam.server.registry import Registry
 
 if TYPE_CHECKING:
     from cpslam.server.groups import Group

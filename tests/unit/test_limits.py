@@ -302,6 +302,30 @@ def test_tombstones_are_capped_forgetting_the_oldest() -> None:
     assert 2999 in tomb and 0 not in tomb  # the newest removals are remembered
 
 
+def test_keyframes_per_agent_are_capped() -> None:
+    reg = Registry(F, max_keyframes_per_agent=5)
+    for kf in range(8):
+        reg.handle(keyframe(kf, kf))
+    assert sorted(reg.agents["a"].keyframes) == [0, 1, 2, 3, 4]
+    assert reg.agents["a"].seq_floor == 7  # dropped, not left hanging
+    assert sum(n for r, n in reg.dropped.items() if "max_keyframes_per_agent" in r) == 3
+
+
+def test_points_per_agent_are_capped_counting_replacements_and_removals() -> None:
+    reg = Registry(F, max_points_per_agent=100)
+    reg.handle(keyframe(0, 0))
+    reg.handle(delta(1, range(80)))
+    reg.handle(delta(2, range(70, 120)))  # 40 new: 120 > 100, refused whole
+    assert len(reg.agents["a"].points) == 80
+    reg.handle(delta(3, range(70, 120), removed=range(20)))  # 40 new, 20 gone: 100, taken
+    assert sorted(reg.agents["a"].points.ids.tolist()) == list(range(20, 120))
+    reg.handle(delta(4, range(50)))  # 30 replaced, 20 new: 120, refused whole
+    reg.handle(delta(5, range(20, 120)))  # all replaced: 100, taken
+    assert sorted(reg.agents["a"].points.ids.tolist()) == list(range(20, 120))
+    assert reg.agents["a"].seq_floor == 5
+    assert sum(n for r, n in reg.dropped.items() if "max_points_per_agent" in r) == 2
+
+
 def test_pending_frames_are_capped() -> None:
     reg = Registry(F, max_pending_frames=50)
     for seq in range(10):
