@@ -25,11 +25,9 @@ class LimitsConfig(Section):
     max_pending_points: PositiveInt = 1_000_000
     """Sub-map points of one agent waiting for their keyframe; the oldest beyond it are dropped."""
     max_keyframes_per_agent: PositiveInt = 20_000
-    """Keyframes the server keeps of one agent (about 11 hours of a 30 Hz camera that makes a
-    keyframe every 20 frames); a keyframe beyond it is dropped."""
+    """Keyframes the server keeps of one agent (11 h at 30 Hz, one in 20); further ones dropped."""
     max_points_per_agent: PositiveInt = 5_000_000
-    """Map points the server keeps of one agent (waiting ones included); a sub-map delta that
-    would go beyond it is dropped whole."""
+    """Map points the server keeps of one agent; a sub-map delta beyond it is dropped whole."""
     max_seq_ahead: PositiveInt = 100_000
     """A message whose seq is this far beyond the agent's acknowledged one is dropped unacked."""
     max_removed_per_message: PositiveInt = 500_000
