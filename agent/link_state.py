@@ -38,6 +38,11 @@ _SCALARS = (
 )
 
 
+_FIELDS = ("agent_id", "group_members", "T_group_agent", "foreign_index", "frame_kf",
+           "frame_index", "server_state", "descriptor_kfs", "descriptors", "sent_ids",
+           "sent_features", "outbox", "pending_frames")
+
+
 def link_state(link: AgentLink) -> dict:
     """Plain data and tensors of everything `load_link_state` needs."""
     state: dict = {name: getattr(link, name) for name in _SCALARS}
@@ -67,6 +72,10 @@ def link_state(link: AgentLink) -> dict:
 
 def load_link_state(link: AgentLink, state: dict) -> None:
     """Restore `link_state` into a fresh link of the same agent id."""
+    missing = sorted({*_SCALARS, *_FIELDS} - set(state))
+    if missing:
+        raise ValueError(f"link state lacks {', '.join(missing)} (written by another cpslam "
+                         "version?); resume with the version that wrote it")
     if state["agent_id"] != link.agent_id:
         raise ValueError(
             f"link state of agent {state['agent_id']!r} cannot resume agent {link.agent_id!r}"

@@ -13,7 +13,8 @@ nodes and codec as over Zenoh): `cpslam dataset synth --scene apartment --agents
   float32 decoders, no compression (the wire format before the link section);
 - after: the link section's defaults (coalesced deltas, relative change threshold, int8
   features, int8 decoder deltas, zstd);
-- no-decoder-delta: after with full float32 decoders (the ATE with and without decoder deltas).
+- no-decoder-delta: after with full float32 decoders (the ATE with and without decoder deltas);
+- coalesce4: after with a sub-map delta every 4 mapping calls instead of 2.
 
 Per variant and agent: bytes per second of sensor time per message type (the server's
 counters in metrics.json), the joint se3 ATE of both global trajectories, the merge time, and
@@ -46,6 +47,7 @@ VARIANTS = {
     ],
     "after": [],
     "no-decoder-delta": ["link.decoder_delta=false"],
+    "coalesce4": ["link.submap_every_mappings=4"],
 }
 
 

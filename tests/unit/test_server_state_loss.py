@@ -3,11 +3,13 @@ liveliness token and streams its whole state again as a new incarnation; nothing
 
 from __future__ import annotations
 
+import itertools
 import json
 import threading
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from cpslam.agent.daemon import run_networked
 from cpslam.common.bus import InMemoryBus, InMemoryNetwork
@@ -88,5 +90,67 @@ def test_a_server_restarted_without_its_state_gets_everything_again(tmp_path: Pa
     # Poses arrive in the agent's frame: the keyframes' relative motion is the agent's own.
     kfs = sorted(rec.keyframes)
     steps = [np.linalg.norm(rec.keyframes[b].T_own_kf[:3, 3] - rec.keyframes[a].T_own_kf[:3, 3])
-             for a, b in zip(kfs, kfs[1:])]
+             for a, b in itertools.pairwise(kfs)]
     assert all(np.isfinite(steps)) and max(steps, default=0.0) < 0.5
+
+
+def test_a_restarted_stream_carries_the_whole_state_in_stream_order() -> None:
+    from cpslam.agent.link_state import link_state, load_link_state
+    from cpslam.protocol import DecoderWeights, FramePoses, KeyframeMsg, SubmapDelta
+    from tests.unit.test_link import _link, _run
+
+    link = _link(frames_every=2, rounds=2)
+    first = _run(link, 0, 7)
+    link.outbox.on_ack(_ack(link, link.next_seq - 1), link.next_seq, link.incarnation)
+    link.epoch, link.group_id = 3, "g"  # as if merged by the old server
+    sent_kfs = [m for m in first if isinstance(m, KeyframeMsg)]
+
+    # The link state keeps what a restart needs (a resumed agent may meet a new server).
+    state = link_state(link)
+    again = _link(frames_every=2, rounds=2)
+    load_link_state(again, state)
+    assert again._frame_index == link._frame_index == list(range(7))
+    assert again._descriptors.keys() == link._descriptors.keys()
+    del state["frame_index"]
+    with pytest.raises(ValueError, match="frame_index"):
+        load_link_state(_link(), state)
+
+    out = link.restart(incarnation=99)
+    assert [m.seq for m in out] == list(range(len(out))) and link.next_seq == len(out)
+    assert all(m.incarnation == 99 for m in out) and len(link.outbox) == len(out)
+    assert link.epoch == 0 and link.group_id == link.agent_id and link.update_seq == 0
+    kinds = [type(m) for m in out]
+    assert kinds == sorted(kinds, key=[KeyframeMsg, SubmapDelta, DecoderWeights,
+                                       FramePoses].index), "keyframes first, frame poses last"
+    kfs = [m for m in out if isinstance(m, KeyframeMsg)]
+    assert [m.kf_id for m in kfs] == [m.kf_id for m in sent_kfs]
+    assert all(m.world_epoch == 0 for m in kfs) and kfs[0].T_prev_kf_kf is None
+    for new, old in zip(kfs, sent_kfs, strict=True):  # the descriptor as first sent
+        np.testing.assert_array_equal(new.descriptor, old.descriptor)
+    pm = link.odometry.point_map
+    own = int((pm.agent_id == link.own).sum())
+    assert sum(m.point_ids.size for m in out if isinstance(m, SubmapDelta)) == own
+    frames = [m for m in out if isinstance(m, FramePoses)]
+    assert sorted(np.concatenate([m.frame_indices for m in frames]).tolist()) == list(range(7))
+    assert not any(isinstance(m, DecoderWeights) and m.base_round is not None for m in out)
+
+
+def test_a_full_map_goes_in_messages_of_bounded_size() -> None:
+    from cpslam.agent.rebase import restart_stream
+    from cpslam.protocol import SubmapDelta
+    from tests.unit.test_link import _link, _run
+
+    link = _link()
+    _run(link, 0, 3)
+    own = int((link.odometry.point_map.agent_id == link.own).sum())
+    out = restart_stream(link, 5, max_points=own // 3 + 1)
+    deltas = [m for m in out if isinstance(m, SubmapDelta)]
+    assert len(deltas) == 3 and all(m.point_ids.size <= own // 3 + 1 for m in deltas)
+    ids = np.concatenate([m.point_ids for m in deltas])
+    assert ids.size == own and np.unique(ids).size == own
+
+
+def _ack(link, seq: int):
+    from cpslam.protocol import Ack
+
+    return Ack(agent_id=link.agent_id, seq=seq, incarnation=link.incarnation)
