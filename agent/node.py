@@ -153,13 +153,15 @@ class AgentNode:
             result = self.odometry.step(frame)
             out = self.link.after_step(frame, result)
         self.results.append(result)
-        self.send(out, record=True)
+        self.send(out, record=True, stamp=result.timestamp)
         self.wall_s += time.perf_counter() - t0
         return result
 
-    def send(self, messages: list[Message], record: bool = False) -> None:
+    def send(self, messages: list[Message], record: bool = False,
+             stamp: float | None = None) -> None:
         """Publish agent messages on their topic keys (`record`: new ones, into the wire
-        recording when ``link.record`` is on; resends and update acks are not recorded)."""
+        recording when ``link.record`` is on, produced at frame time `stamp`; resends and
+        update acks are not recorded)."""
         topic = {"keyframe": "keyframe", "submap_delta": "submap",
                  "decoder_weights": "decoder", "frame_poses": "frames",
                  "update_ack": "update_ack"}
@@ -169,7 +171,11 @@ class AgentNode:
                 payload = protocol.encode(msg, self.cfg.link.zstd_level)
                 self.bus.publish(key, payload)
                 if record and self.recorder is not None:
-                    self.recorder.message(time.monotonic(), topic[msg.type], payload)
+                    first = self.results[0].timestamp if self.results else 0.0
+                    at = stamp if stamp is not None else (
+                        self.results[-1].timestamp if self.results else 0.0)
+                    self.recorder.message(time.monotonic(), topic[msg.type], payload,
+                                          stamp=at - first)
             except ProtocolError as exc:
                 logger.error("agent %s: could not send %s seq %d: %s", self.agent_id, msg.type,
                              getattr(msg, "seq", -1), exc)

@@ -9,7 +9,10 @@ replays such recordings as many agents.
 
 File format: a stream of msgpack maps, first ``{"kind": "header", "format": "cpslam-wire",
 "version": 1, "agent_id", "session", "incarnation"}``, then ``{"kind": "message", "t": s,
-"topic": "keyframe"|"submap"|"decoder"|"frames", "payload": bytes}`` in send order and
+"stamp": s, "topic": "keyframe"|"submap"|"decoder"|"frames", "payload": bytes}`` in send
+order (``t``: seconds since the node started; ``stamp``: sensor seconds of the frame that
+produced the message since the first frame, what an agent keeping up with its camera would
+publish by) and
 ``{"kind": "image", "kf_id": int, "payload": bytes}``. The writer stops recording (one
 warning) at ``link.record_mb``; the reader refuses a record over `MAX_RECORD_BYTES` or a
 file over its `max_mb`, naming the file and the record.
@@ -22,11 +25,19 @@ import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any, BinaryIO, NamedTuple
 
 import msgpack
 
-__all__ = ["FORMAT", "MAX_RECORD_BYTES", "TOPICS", "Recording", "WireRecorder", "read_recording"]
+__all__ = [
+    "FORMAT",
+    "MAX_RECORD_BYTES",
+    "TOPICS",
+    "RecordedMessage",
+    "Recording",
+    "WireRecorder",
+    "read_recording",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -82,14 +93,16 @@ class WireRecorder:
             }
         )
 
-    def message(self, t: float, topic: str, payload: bytes) -> None:
-        """One published message (`t` on the clock `start` is on)."""
+    def message(self, t: float, topic: str, payload: bytes, stamp: float = 0.0) -> None:
+        """One published message (`t` on the clock `start` is on; `stamp`: sensor seconds
+        since the first frame)."""
         if topic not in TOPICS:
             raise ValueError(f"WireRecorder: topic {topic!r} is not one of {TOPICS}")
         if self._write(
             {
                 "kind": "message",
                 "t": max(float(t) - self.start, 0.0),
+                "stamp": max(float(stamp), 0.0),
                 "topic": topic,
                 "payload": bytes(payload),
             }
@@ -131,6 +144,16 @@ class WireRecorder:
         return True
 
 
+class RecordedMessage(NamedTuple):
+    t: float
+    """Seconds since the agent started."""
+    topic: str
+    payload: bytes
+    """The encoded message as published."""
+    stamp: float
+    """Sensor seconds of the frame that produced it, since the first frame."""
+
+
 @dataclass
 class Recording:
     """A recording read back: header fields, messages in send order, images by keyframe."""
@@ -139,14 +162,20 @@ class Recording:
     agent_id: str
     session: str
     incarnation: int
-    messages: list[tuple[float, str, bytes]] = field(default_factory=list)
-    """(seconds since the agent started, topic, encoded message)."""
+    messages: list[RecordedMessage] = field(default_factory=list)
+    """In send order."""
     images: dict[int, bytes] = field(default_factory=dict)
     """kf_id -> encoded `KeyframeImage`."""
 
     @property
     def duration_s(self) -> float:
-        return self.messages[-1][0] if self.messages else 0.0
+        """Seconds from the start to the last message."""
+        return self.messages[-1].t if self.messages else 0.0
+
+    @property
+    def sensor_s(self) -> float:
+        """Sensor seconds from the first frame to the last message."""
+        return self.messages[-1].stamp if self.messages else 0.0
 
 
 def read_recording(path: str | Path, max_mb: float = 4096.0) -> Recording:
@@ -194,12 +223,13 @@ def _add(path: Path, i: int, record: Any, rec: Recording | None) -> Recording:
     if not isinstance(payload, bytes):
         raise ValueError(f"{where}: payload must be bytes")
     if kind == "message":
-        t, topic = record.get("t"), record.get("topic")
-        if not isinstance(t, (int, float)) or not math.isfinite(t) or t < 0:
-            raise ValueError(f"{where}: t must be a finite number >= 0, got {t!r}")
+        t, topic, stamp = record.get("t"), record.get("topic"), record.get("stamp")
+        for name, value in (("t", t), ("stamp", stamp)):
+            if not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
+                raise ValueError(f"{where}: {name} must be a finite number >= 0, got {value!r}")
         if topic not in TOPICS:
             raise ValueError(f"{where}: topic {topic!r} is not one of {TOPICS}")
-        rec.messages.append((float(t), topic, payload))
+        rec.messages.append(RecordedMessage(float(t), topic, payload, float(stamp)))
     elif kind == "image":
         kf = record.get("kf_id")
         if not isinstance(kf, int) or kf < 0:

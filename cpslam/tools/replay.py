@@ -11,7 +11,9 @@ left out, and so is a delta whose base was left out.
 
 `ReplayAgent` plays one replica on a bus as the agent daemon would: liveliness token, image
 queryable answered from the recording's keyframe images (agent id rewritten), messages
-published at the recorded time divided by ``speed``, an `Outbox` that acks trim and that
+published at the recorded time (by default the sensor time of the frame that produced them:
+an agent keeping up with its camera, whatever the recording machine's speed) divided by
+``speed``, an `Outbox` that acks trim and that
 resends what stays unacknowledged ``resend_after_s``, an `UpdateAck` for each server update
 (which it does not apply: it does not track or map), and shared decoders taken off the bus
 unapplied. Replicas of one recording are the same map in different frames, so the server
@@ -52,6 +54,9 @@ from cpslam.protocol import (
     keys,
 )
 
+CLOCKS = ("sensor", "wall")
+"""Timelines a recording can be replayed on (`replica_messages`)."""
+
 __all__ = ["ReplayAgent", "Replica", "random_rigid", "replay", "replica_messages"]
 
 logger = logging.getLogger(__name__)
@@ -73,15 +78,25 @@ def random_rigid(rng: np.random.Generator, max_translation_m: float = 5.0) -> np
 
 
 def replica_messages(
-    rec: Recording, agent_id: str, incarnation: int, T_world_rec: np.ndarray
+    rec: Recording,
+    agent_id: str,
+    incarnation: int,
+    T_world_rec: np.ndarray,
+    clock: str = "sensor",
 ) -> tuple[list[tuple[float, str, Message]], int]:
     """The recording's messages as agent `agent_id` in the world ``T_world_rec`` moves the
     recorded one into: ``[(t, topic, message)]`` and how many were left out (see the module
-    docstring). Raises ValueError naming the recording for a message that does not decode."""
+    docstring). `clock`: ``t`` is the sensor time of the frame that produced the message
+    (``sensor``: an agent that keeps up with its camera) or the time the recorded agent sent
+    it (``wall``: as fast as the recording machine was). Raises ValueError naming the
+    recording for a message that does not decode."""
+    if clock not in CLOCKS:
+        raise ValueError(f"replica_messages: clock must be one of {CLOCKS}, got {clock!r}")
     out: list[tuple[float, str, Message]] = []
     new_seq: dict[int, int] = {}
     skipped = 0
-    for i, (t, topic, payload) in enumerate(rec.messages):
+    for i, (t_wall, topic, payload, stamp) in enumerate(rec.messages):
+        t = stamp if clock == "sensor" else t_wall
         try:
             msg = protocol.decode(payload)
         except ProtocolError as exc:
@@ -129,6 +144,7 @@ class ReplayAgent:
         speed: recorded seconds per replayed second.
         outbox: where sent messages wait for their acks.
         zstd_level: compression of the re-encoded messages (the agent's ``link.zstd_level``).
+        clock: the recording's timeline to follow (`replica_messages`).
     """
 
     def __init__(
@@ -139,6 +155,7 @@ class ReplayAgent:
         speed: float = 1.0,
         outbox: Outbox | None = None,
         zstd_level: int = 3,
+        clock: str = "sensor",
     ) -> None:
         if speed <= 0:
             raise ValueError(f"ReplayAgent: speed must be > 0, got {speed}")
@@ -149,7 +166,7 @@ class ReplayAgent:
         self.incarnation = replica.incarnation
         self.speed, self.zstd_level = float(speed), zstd_level
         self.messages, self.skipped = replica_messages(
-            replica.recording, self.agent_id, self.incarnation, replica.T_world_rec
+            replica.recording, self.agent_id, self.incarnation, replica.T_world_rec, clock
         )
         self.outbox = outbox if outbox is not None else Outbox()
         self.next = 0

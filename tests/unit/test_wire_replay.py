@@ -50,11 +50,13 @@ def test_recording_holds_every_message_once_with_images(recorded) -> None:
     path, _ = recorded
     rec = read_recording(path)
     assert rec.agent_id == "0" and rec.incarnation > 0
-    seqs = [protocol.decode(p).seq for _, _, p in rec.messages]
+    seqs = [protocol.decode(m.payload).seq for m in rec.messages]
     assert seqs == list(range(len(seqs)))  # what the link produced, no resends, no gaps
-    stamps = [t for t, _, _ in rec.messages]
-    assert stamps == sorted(stamps) and stamps[0] >= 0
-    kf_ids = [protocol.decode(p).kf_id for _, topic, p in rec.messages if topic == "keyframe"]
+    for times in ([m.t for m in rec.messages], [m.stamp for m in rec.messages]):
+        assert times == sorted(times) and times[0] >= 0
+    # sensor time: the stream's frames at 30 Hz, the last message at the last frame
+    assert rec.sensor_s == pytest.approx((FRAMES - 1) / 30, abs=1e-6)
+    kf_ids = [protocol.decode(m.payload).kf_id for m in rec.messages if m.topic == "keyframe"]
     assert kf_ids and set(kf_ids) <= set(rec.images)
     image = protocol.decode(rec.images[kf_ids[0]], expected=KeyframeImage)
     assert image.rgb is not None and image.depth is not None
@@ -69,9 +71,9 @@ def test_replicas_move_poses_and_keep_local_data(recorded) -> None:
     # One agent alone never loads a shared decoder: no delta against one to leave out.
     assert skipped == 0 and len(out) == len(rec.messages)
     assert [m.seq for _, _, m in out] == list(range(len(out)))
-    for (t, topic, msg), (t0, topic0, payload) in zip(out, rec.messages, strict=True):
+    for (t, topic, msg), (_, topic0, payload, stamp) in zip(out, rec.messages, strict=True):
         orig = protocol.decode(payload)
-        assert (t, topic, type(msg)) == (t0, topic0, type(orig))
+        assert (t, topic, type(msg)) == (stamp, topic0, type(orig))
         assert msg.agent_id == "r7" and msg.incarnation == 42
         if isinstance(msg, KeyframeMsg):
             np.testing.assert_allclose(msg.T_world_cam, T @ orig.T_world_cam, atol=1e-12)
@@ -107,12 +109,12 @@ def test_three_replicas_merge_and_the_server_recovers_their_transforms(recorded)
     try:
         # Lock-step on a virtual clock: the agents publish what is due, the server handles it.
         step = 0.25
-        for i in range(int(rec.duration_s / step) + 40):
+        for i in range(int(rec.sensor_s / step) + 40):
             clock[0] = i * step
             for agent in agents:
                 agent.step(clock[0])
             server.poll()
-            if i * step > rec.duration_s and all(a.done for a in agents):
+            if i * step > rec.sensor_s and all(a.done for a in agents):
                 break
         for agent in agents:
             agent.poll()
@@ -136,7 +138,7 @@ def test_three_replicas_merge_and_the_server_recovers_their_transforms(recorded)
     cell = cfg.field.grid_size
     reach = max(
         float(np.linalg.norm(m.xyz_local, axis=1).max())
-        for m in (protocol.decode(p) for _, t, p in rec.messages if t == "submap")
+        for m in (protocol.decode(r.payload) for r in rec.messages if r.topic == "submap")
     )
     for k in (1, 2):
         d = compose(invert(C[0]), C[k])
@@ -169,11 +171,15 @@ def test_replay_agent_serves_recorded_images_under_its_own_id(recorded) -> None:
 def test_reader_names_the_file_and_record(tmp_path: Path) -> None:
     path = tmp_path / "wire.rec"
     rec = WireRecorder(path, "a", "s", 7)
-    rec.message(1.0, "frames", b"x")
+    rec.message(1.0, "frames", b"x", stamp=0.5)
     rec.close()
-    assert read_recording(path).messages == [(1.0, "frames", b"x")]
+    assert read_recording(path).messages == [(1.0, "frames", b"x", 0.5)]
     with path.open("ab") as fh:
-        fh.write(msgpack.packb({"kind": "message", "t": -1.0, "topic": "frames", "payload": b""}))
+        fh.write(
+            msgpack.packb(
+                {"kind": "message", "t": -1.0, "stamp": 0.0, "topic": "frames", "payload": b""}
+            )
+        )
     with pytest.raises(ValueError, match=r"wire\.rec: record 2: t must be"):
         read_recording(path)
     path.write_bytes(msgpack.packb({"kind": "message"}))
