@@ -115,7 +115,10 @@ def record(cache: Path, frames: int, seq: Path | None) -> tuple[Path, Path]:
             seed=0,
             overwrite=True,
         )
+    from cpslam.common.device import configure_torch
+
     cfg = override_config(load_config("tiny"), ["mapping.iters_first=30", "link.record=true"])
+    configure_torch(cfg.run.num_threads, cfg.run.deterministic)  # as `cpslam run` does
     print(f"recording {seq} ...", flush=True)
     run_collab(cfg, [open_sequence(seq)], base / "run", show_progress=False)
     return seq, rec_path

@@ -46,6 +46,7 @@ def recorded(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, object]:
     return tmp / "run" / "agent_0" / "wire.rec", cfg
 
 
+@pytest.mark.slow  # the shared recording: a 15-frame tiny run
 def test_recording_holds_every_message_once_with_images(recorded) -> None:
     path, _ = recorded
     rec = read_recording(path)
@@ -63,6 +64,7 @@ def test_recording_holds_every_message_once_with_images(recorded) -> None:
     assert path.stat().st_mode & 0o077 == 0  # private, like the run's other outputs
 
 
+@pytest.mark.slow  # the shared recording: a 15-frame tiny run
 def test_replicas_move_poses_and_keep_local_data(recorded) -> None:
     path, _ = recorded
     rec = read_recording(path)
@@ -90,6 +92,7 @@ def test_replicas_move_poses_and_keep_local_data(recorded) -> None:
     assert {type(m) for _, _, m in out} >= {KeyframeMsg, SubmapDelta, FramePoses}
 
 
+@pytest.mark.slow  # the shared recording: a 15-frame tiny run
 def test_three_replicas_merge_and_the_server_recovers_their_transforms(recorded) -> None:
     from cpslam.server.node import ServerNode
 
@@ -150,6 +153,7 @@ def test_three_replicas_merge_and_the_server_recovers_their_transforms(recorded)
     assert poll["worst_s"] >= poll["p99_s"] >= poll["p50_s"] >= 0
 
 
+@pytest.mark.slow  # the shared recording: a 15-frame tiny run
 def test_replay_agent_serves_recorded_images_under_its_own_id(recorded) -> None:
     path, cfg = recorded
     rec = read_recording(path)
