@@ -273,7 +273,7 @@ def _bandwidth(report: dict) -> str:
 def _scale(report: dict) -> str:
     rows = [("agents", "msgs/s", "server CPU", "poll worst / p99 s", "max queue", "peak RSS MB",
              "merges (last at s)", "verify s", "loops acc./found", "largest group",
-             "joint ATE m", "replay s")]
+             "joint ATE m", "replay s", "resent")]
     keys_rows = [("agents", "direction", "bytes per agent by key")]
     for r in report["runs"]:
         last = r["merged_at_s"][-1] if r["merged_at_s"] else "-"
@@ -282,7 +282,7 @@ def _scale(report: dict) -> str:
                      r["peak_rss_mb"], f"{r['merges']} ({last})", r["loop_verification_s"],
                      f"{r['loops_accepted']}/{r['loops_found']}",
                      f"{r['largest_group']}/{r['agents']}", r["joint_ate_m"],
-                     r["replay_wall_s"]))
+                     r["replay_wall_s"], r.get("resent", "-")))
         for direction in ("from_agent", "to_agent"):
             cells = r["bytes_per_agent"][direction]
             keys_rows.append((r["agents"], direction.replace("_", " "),
@@ -290,8 +290,9 @@ def _scale(report: dict) -> str:
     return (f"One recorded agent ({report['sequence']}, {report.get('frames') or '-'} frames, "
             f"tiny preset) replayed as N agents on the {report['clock']} clock at speed "
             f"{report['speed']}, over Zenoh TCP to a `cpslam-server` process (docs/scale.md). "
-            "Server CPU: share of one core over the replay.\n\n" + _table(rows) + "\n\n"
-            + _table(keys_rows) + "\n")
+            "Server CPU: share of one core over the replay; resent: messages the replicas "
+            "published again, unacknowledged `transport.resend_after_s` after sending.\n\n"
+            + _table(rows) + "\n\n" + _table(keys_rows) + "\n")
 
 
 RENDERERS = {"odometry": _odometry, "loop_edges": _loop_edges, "collab": _collab,

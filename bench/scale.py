@@ -20,7 +20,8 @@ verifying loops; loops found/accepted; the joint ATE (one se3 alignment, metres)
 replica's final global trajectory against the recorded sequence's ground truth (replica k's
 ground truth is the recorded one moved by its transform T_k; in the group frame the true
 alignment C inv(T_k) takes it back to C times the recorded one, the same for all replicas);
-and bytes per agent per key expression, both ways, averaged over the replicas.
+and bytes per agent per key expression, both ways, averaged over the replicas (resends
+included: ``resent`` counts the messages the replicas published again).
 
 Usage: python bench/scale.py [--agents 1 2 4 8 16] [--frames 30] [--speed 1.0] [--seed 0]
            [--clock sensor|wall] [--seq PATH] [--cache DIR] [--json bench/results/scale.json]
@@ -229,6 +230,7 @@ def run_one(
         cpu1 - cpu0,
         watch.merged_at,
         sum(a.skipped for a in agents),
+        sum(a.stats["resent"] for a in agents),
     )
 
 
@@ -280,6 +282,7 @@ def summarise(
     cpu: float,
     merged_at: list[float],
     skipped: int,
+    resent: int,
 ) -> dict:
     from cpslam.common.datasets import open_sequence
     from cpslam.common.trajectory import read_tum
@@ -309,6 +312,7 @@ def summarise(
         "streamed_s": played["streamed_s"] and round(played["streamed_s"], 2),
         "unacknowledged": sum(played["unacknowledged"].values()),
         "skipped": skipped,
+        "resent": resent,
         "messages_handled": poll["messages"],
         "messages_per_s": round(poll["messages"] / wall, 1),
         "server_cpu_share": round(cpu / wall, 3),
@@ -336,7 +340,7 @@ def print_row(row: dict) -> None:
         f"{row['max_queue_depth']}  rss {row['peak_rss_mb']} MB  merges {row['merges']} (last "
         f"{last} s, verify {row['loop_verification_s']} s)  loops "
         f"{row['loops_accepted']}/{row['loops_found']}  group {row['largest_group']}/"
-        f"{row['agents']}  joint ATE {row['joint_ate_m']} m",
+        f"{row['agents']}  joint ATE {row['joint_ate_m']} m  resent {row['resent']}",
         flush=True,
     )
     print(
