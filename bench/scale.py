@@ -32,6 +32,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -139,7 +140,10 @@ def run_one(
     rec = read_recording(rec_path)
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
-    out.mkdir(parents=True, exist_ok=True)
+    # a fresh server: one finding its earlier state there would resume it (and refuse the
+    # replicas' new incarnations under the same ids)
+    shutil.rmtree(out, ignore_errors=True)
+    out.mkdir(parents=True)
     server_dir = out / "server"
     log = (out / "server.log").open("w")
     server = subprocess.Popen(

@@ -11,11 +11,11 @@ left out, and so is a delta whose base was left out.
 
 `ReplayAgent` plays one replica on a bus as the agent daemon would: liveliness token, image
 queryable answered from the recording's keyframe images (agent id rewritten), messages
-published at the recorded time (by default the sensor time of the frame that produced them:
-an agent keeping up with its camera, whatever the recording machine's speed) divided by
-``speed``, an `Outbox` that acks trim and that
-resends what stays unacknowledged ``resend_after_s``, an `UpdateAck` for each server update
-(which it does not apply: it does not track or map), and shared decoders taken off the bus
+published at the recorded time divided by ``speed`` (by default the sensor time of the frame
+that produced them: an agent keeping up with its camera, whatever the recording machine's
+speed; none while the outbox is full), an `Outbox` that acks trim and that resends what
+stays unacknowledged ``resend_after_s``, an `UpdateAck` for each server update (which it
+does not apply: it does not track or map), and shared decoders taken off the bus
 unapplied. Replicas of one recording are the same map in different frames, so the server
 must find the loops between them and merge them; with the right merge replica k's group
 alignment is ``T_group_k = C @ inv(T_world_rec_k)`` with one C for all replicas.
@@ -181,7 +181,7 @@ class ReplayAgent:
             "decoders": 0,
             "bytes": 0,
         }
-        self._images: dict[int, bytes] = {}
+        self._images: dict[int, KeyframeImage] = {}
         self._lock = threading.Lock()  # the image queryable runs on the bus's thread
         self._handles: list[Any] = []
         self._server_sub: Any = None
@@ -225,7 +225,12 @@ class ReplayAgent:
         if self.refused is not None:
             return 0
         n = 0
-        while not self.sent_all and self.messages[self.next][0] / self.speed <= elapsed_s:
+        # like the agent daemon: no new message while the outbox is at its bound
+        while (
+            not self.sent_all
+            and not self.outbox.full()
+            and self.messages[self.next][0] / self.speed <= elapsed_s
+        ):
             _, topic, msg = self.messages[self.next]
             self.outbox.add(int(msg.seq), msg)
             self._publish(topic, msg)
@@ -292,36 +297,40 @@ class ReplayAgent:
             return None
 
     def _serve_image(self, key: str, payload: bytes | None) -> bytes:
+        """The recorded keyframe image under this replica's id, with what the request
+        wants (as `AgentNode` answers: a bad request or an unknown keyframe gets an
+        `ErrorReply`)."""
         try:
             agent, kf = keys.parse_image_key(self.session, key)
+            request = (
+                protocol.decode(payload, expected=KeyframeImageRequest)
+                if payload
+                else KeyframeImageRequest(agent_id=agent, kf_id=kf)
+            )
         except ProtocolError as exc:
             return protocol.encode(ErrorReply(code="bad_request", reason=str(exc)[:4000]))
-        with self._lock:
-            if (
-                kf not in self._images
-                and kf in self.replica.recording.images
-                and (agent == self.agent_id)
-            ):
-                recorded = protocol.decode(
-                    self.replica.recording.images[kf], expected=KeyframeImage
-                )
-                self._images[kf] = protocol.encode(
-                    recorded.model_copy(update={"agent_id": self.agent_id})
-                )
-            reply = self._images.get(kf) if agent == self.agent_id else None
-            self.stats["images" if reply is not None else "image_misses"] += 1
-        if payload:
-            try:
-                protocol.decode(payload, expected=KeyframeImageRequest)
-            except ProtocolError as exc:
-                return protocol.encode(ErrorReply(code="bad_request", reason=str(exc)[:4000]))
-        return (
-            reply
-            if reply is not None
-            else protocol.encode(
+        if (request.agent_id, request.kf_id) != (agent, kf):
+            return protocol.encode(
+                ErrorReply(code="bad_request", reason="request does not match the key")
+            )
+        recorded = self.replica.recording.images.get(kf)
+        if agent != self.agent_id or recorded is None:
+            with self._lock:
+                self.stats["image_misses"] += 1
+            return protocol.encode(
                 ErrorReply(code="not_found", reason=f"replica {self.agent_id} has no keyframe {kf}")
             )
-        )
+        with self._lock:
+            image = self._images.get(kf)
+            if image is None:
+                image = self._images[kf] = protocol.decode(recorded, expected=KeyframeImage)
+            self.stats["images"] += 1
+        update: dict[str, Any] = {"agent_id": self.agent_id}
+        if not request.want_rgb and image.depth is not None:
+            update["rgb"] = None
+        if not request.want_depth and image.rgb is not None:
+            update["depth"] = None
+        return protocol.encode(image.model_copy(update=update))
 
 
 _TOPIC = {
