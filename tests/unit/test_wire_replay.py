@@ -172,6 +172,145 @@ def test_replay_agent_serves_recorded_images_under_its_own_id(recorded) -> None:
         agent.close()
 
 
+def _handmade(path: Path) -> Path:
+    """A recording of hand-made messages: keyframe, frames, decoder weights in full, a delta
+    against them (base_seq), a delta against a shared decoder (base_round), and another
+    delta whose base is that one."""
+    T = np.eye(4)
+    T[:3, 3] = (1.0, 2.0, 3.0)
+    d = np.ones(8, np.float32) / np.sqrt(8)
+    w = {"w": np.zeros((2, 2), np.float32)}
+    msgs = [
+        KeyframeMsg(
+            agent_id="a",
+            seq=0,
+            kf_id=0,
+            frame_index=0,
+            stamp=0.0,
+            world_epoch=2,
+            T_world_cam=T,
+            descriptor=d,
+        ),
+        FramePoses(
+            agent_id="a",
+            seq=1,
+            frame_indices=np.arange(2),
+            stamps=np.zeros(2),
+            kf_ids=np.zeros(2, np.int32),
+            T_kf_frame=np.stack([np.eye(4)] * 2),
+        ),
+        DecoderWeights(agent_id="a", seq=2, group_id="a", round=0, n_samples=1, tensors=w),
+        DecoderWeights(
+            agent_id="a", seq=3, group_id="a", round=0, n_samples=1, tensors=w, base_seq=2
+        ),
+        DecoderWeights(
+            agent_id="a", seq=4, group_id="g", round=3, n_samples=1, tensors=w, base_round=3
+        ),
+        DecoderWeights(
+            agent_id="a", seq=5, group_id="g", round=3, n_samples=1, tensors=w, base_seq=4
+        ),
+        FramePoses(
+            agent_id="a",
+            seq=6,
+            frame_indices=np.arange(2, 3),
+            stamps=np.ones(1),
+            kf_ids=np.zeros(1, np.int32),
+            T_kf_frame=np.eye(4)[None],
+        ),
+    ]
+    rec = WireRecorder(path, "a", "s", 1)
+    for i, msg in enumerate(msgs):
+        topic = {"keyframe": "keyframe", "frame_poses": "frames"}.get(msg.type, "decoder")
+        rec.message(10.0 * i, topic, protocol.encode(msg), stamp=0.1 * i)
+    rec.close()
+    return path
+
+
+def test_replica_renumbers_and_leaves_out_what_it_cannot_replay(tmp_path: Path) -> None:
+    rec = read_recording(_handmade(tmp_path / "w.rec"))
+    T = random_rigid(np.random.default_rng(1), max_translation_m=2.0)
+    np.testing.assert_allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(T[:3, :3]) == pytest.approx(1.0) and np.abs(T[:3, 3]).max() <= 2.0
+    out, skipped = replica_messages(rec, "b", 9, T)
+    assert skipped == 2  # the base_round delta and the delta built on it
+    assert [(m.type, m.seq) for _, _, m in out] == [
+        ("keyframe", 0),
+        ("frame_poses", 1),
+        ("decoder_weights", 2),
+        ("decoder_weights", 3),
+        ("frame_poses", 4),
+    ]
+    assert out[3][2].base_seq == 2 and out[3][2].group_id == "b"
+    kf = out[0][2]
+    np.testing.assert_allclose(kf.T_world_cam[:3, 3], T[:3, :3] @ (1.0, 2.0, 3.0) + T[:3, 3])
+    assert kf.world_epoch == 0
+    # every replayed message decodes as the server would read it
+    for _, _, msg in out:
+        assert protocol.decode(protocol.encode(msg)).agent_id == "b"
+    assert [t for t, _, _ in out] == pytest.approx([0.0, 0.1, 0.2, 0.3, 0.6])
+    wall, _ = replica_messages(rec, "b", 9, T, clock="wall")
+    assert [t for t, _, _ in wall] == [0.0, 10.0, 20.0, 30.0, 60.0]
+    with pytest.raises(ValueError, match="clock"):
+        replica_messages(rec, "b", 9, T, clock="cpu")
+
+
+def test_replay_agent_resends_until_acked_and_acks_updates(tmp_path: Path, fake_clock) -> None:
+    from cpslam.agent.outbox import Outbox
+    from cpslam.protocol import Ack, ServerUpdate, UpdateAck
+
+    rec = read_recording(_handmade(tmp_path / "w.rec"))
+    network = InMemoryNetwork()
+    with InMemoryBus(network) as a_bus, InMemoryBus(network) as s_bus:
+        inbox = s_bus.subscribe(keys.all_agents("s"), queue_size=64)
+        agent = ReplayAgent(
+            Replica("b", rec, np.eye(4)),
+            a_bus,
+            "s",
+            speed=2.0,
+            outbox=Outbox(resend_after_s=5.0, now=fake_clock),
+        ).start()
+        assert agent.step(0.1) == 3  # stamps 0, 0.1, 0.2 at twice the speed
+        assert agent.step(1.0) == 2 and agent.sent_all and not agent.done
+        got = []
+        while (sample := inbox.get(timeout=1.0)) is not None:
+            got.append(protocol.decode(sample.payload).seq)
+            if len(got) == 5:
+                break
+        assert got == [0, 1, 2, 3, 4]
+        fake_clock.advance(6.0)
+        agent.step(2.0)
+        assert agent.stats["resent"] == 5
+        s_bus.publish(
+            keys.server_agent_ack("s", "b"),
+            protocol.encode(Ack(agent_id="b", seq=4, incarnation=agent.incarnation)),
+        )
+        update = ServerUpdate(
+            agent_id="b",
+            seq=3,
+            group_id="b",
+            epoch=1,
+            T_group_agent=np.eye(4),
+            group_members=["b"],
+            kf_ids=np.zeros(0, np.int32),
+            T_group_kf=np.zeros((0, 4, 4)),
+        )
+        s_bus.publish(keys.server_agent_update("s", "b"), protocol.encode(update))
+        deadline = 50
+        while not agent.done or agent.stats["updates"] == 0:
+            agent.wait(0.1)
+            agent.poll()
+            deadline -= 1
+            assert deadline > 0, agent.stats
+        acks = []
+        while (sample := inbox.get(timeout=1.0)) is not None:
+            msg = protocol.decode(sample.payload)
+            if isinstance(msg, UpdateAck):
+                acks.append(msg.update_seq)
+                break
+        assert acks == [3]
+        agent.close()
+
+
 def test_reader_names_the_file_and_record(tmp_path: Path) -> None:
     path = tmp_path / "wire.rec"
     rec = WireRecorder(path, "a", "s", 7)
