@@ -8,7 +8,10 @@ tiny-preset `cpslam run` with ``link.record`` on, cached under ``--cache``) and,
 transform of seed ``--seed``), at the recorded rate times ``--speed`` (``--clock sensor``:
 as an agent keeping up with its 30 Hz camera; ``wall``: as fast as the recording ran), acks
 and image requests answered. Replicas of one recording are one map in N frames: the server must find
-the loops between them and merge them. Then it finalises (``cpslam finalise``) and the bench
+the loops between them and merge them. Once everything is acknowledged the replicas stay up
+(answering image requests) until the server has no loop candidate left to verify (at most
+``--linger`` seconds: a pair whose images can no longer be pulled is never verified); the
+replay figures cover that whole time. Then it finalises (``cpslam finalise``) and the bench
 reads the server's ``metrics.json`` and trajectories.
 
 Per N: messages the server handled per second of replay; the server's CPU share over the
@@ -24,7 +27,8 @@ and bytes per agent per key expression, both ways, averaged over the replicas (r
 included: ``resent`` counts the messages the replicas published again).
 
 Usage: python bench/scale.py [--agents 1 2 4 8 16] [--frames 30] [--speed 1.0] [--seed 0]
-           [--clock sensor|wall] [--seq PATH] [--cache DIR] [--json bench/results/scale.json]
+           [--clock sensor|wall] [--linger 120] [--seq PATH] [--cache DIR]
+           [--json bench/results/scale.json]
 """
 
 from __future__ import annotations
@@ -66,6 +70,13 @@ def main() -> None:
         help="replay at the frames' sensor time or at the recording's wall time",
     )
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--linger",
+        type=float,
+        default=120.0,
+        help="after everything is acknowledged, keep the replicas up at most "
+        "this long while the server still has loop candidates to verify",
+    )
     parser.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "cpslam-scale")
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
@@ -77,13 +88,17 @@ def main() -> None:
         {
             "frames": args.frames if args.seq is None else None,
             "speed": args.speed,
+            "clock": args.clock,
+            "linger_max_s": args.linger,
             "seed": args.seed,
             "sequence": "synthetic room" if args.seq is None else args.seq.name,
             "runs": [],
         }
     )
     for n in args.agents:
-        row = run_one(n, seq, rec_path, args.cache / f"n{n}", args.speed, args.seed, args.clock)
+        row = run_one(
+            n, seq, rec_path, args.cache / f"n{n}", args.speed, args.seed, args.clock, args.linger
+        )
         report["runs"].append(row)
         print_row(row)
     if args.json:
@@ -127,7 +142,14 @@ def record(cache: Path, frames: int, seq: Path | None) -> tuple[Path, Path]:
 
 
 def run_one(
-    n: int, seq: Path, rec_path: Path, out: Path, speed: float, seed: int, clock: str
+    n: int,
+    seq: Path,
+    rec_path: Path,
+    out: Path,
+    speed: float,
+    seed: int,
+    clock: str,
+    linger_s: float,
 ) -> dict:
     from cpslam.agent.daemon import ServerPresence
     from cpslam.agent.recording import read_recording
@@ -192,6 +214,7 @@ def run_one(
         cpu0, t0 = cpu_seconds(server.pid), time.monotonic()
         watch.start(t0)
         played = replay(agents)
+        linger(agents, watch, linger_s)
         cpu1, wall = cpu_seconds(server.pid), time.monotonic() - t0
         watch.stop()
         for agent in agents:
@@ -239,11 +262,14 @@ def run_one(
 
 
 class MergeWatch:
-    """Polls the server's status every `every_s` for the time each merge appeared."""
+    """Polls the server's status every `every_s` for the time each merge appeared and for
+    the loop candidates still waiting for verification."""
 
     def __init__(self, bus, every_s: float = 0.5) -> None:
         self.bus, self.every_s = bus, every_s
         self.merged_at: list[float] = []
+        self.waiting: int | None = None
+        """Loop candidates pending or retrying at the last status (None: no status yet)."""
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
 
@@ -262,11 +288,27 @@ class MergeWatch:
         while not self._stop.wait(self.every_s):
             for reply in self.bus.query(keys.server_status(SESSION), None, timeout_s=5.0):
                 try:
-                    merges = protocol.decode(reply.payload, expected=Status).summary["merges"]
+                    summary = protocol.decode(reply.payload, expected=Status).summary
+                    merges = summary["merges"]
+                    loops = summary["loops"]
+                    self.waiting = int(loops["pending"]) + int(loops["retrying"])
                 except Exception:  # noqa: BLE001 - a late or trimmed reply: next poll
                     continue
                 while len(self.merged_at) < int(merges):
                     self.merged_at.append(time.monotonic() - self.t0)
+
+
+def linger(agents: list, watch: MergeWatch, max_s: float) -> None:
+    """Keep the replicas up (answering image requests and updates) until the server has no
+    loop candidate waiting, seen on two status polls in a row, or `max_s` passed: a pair
+    whose images can no longer be pulled is never verified."""
+    deadline = time.monotonic() + max_s
+    quiet = 0
+    while time.monotonic() < deadline and quiet < 2:
+        for agent in agents:
+            agent.poll()
+        time.sleep(watch.every_s)
+        quiet = quiet + 1 if watch.waiting == 0 else 0
 
 
 def cpu_seconds(pid: int) -> float:
