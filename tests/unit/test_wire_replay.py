@@ -137,7 +137,9 @@ def test_three_replicas_merge_and_the_server_recovers_their_transforms(recorded)
     C = [compose(group.T_group_agent[r.agent_id], r.T_world_rec) for r in replicas]
     # The recorded map holds one point per grid cell: registration of two copies of it cannot
     # be asked for better than a cell in translation, nor in rotation better than a cell seen
-    # across the farthest point of the recorded map.
+    # across the farthest point of the recorded map (0.14 m and 1.4 deg here). Measured:
+    # 3e-15 m and 0 deg, the merging loops pairing a keyframe with its own copy; a wrong
+    # merge (a frame mixed up, a transform applied twice) is off by metres.
     cell = cfg.field.grid_size
     reach = max(
         float(np.linalg.norm(m.xyz_local, axis=1).max())
