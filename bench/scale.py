@@ -1,18 +1,20 @@
 """How the server scales with agents: one recorded agent replayed as N agents over Zenoh TCP.
 
 Sixteen real agents do not fit on two cores, so the bench records one real agent once (a
-tiny-preset `cpslam run` with ``link.record`` on, cached under ``--cache``) and, per N in
-``--agents``, starts a real ``cpslam-server`` process (tiny preset, Zenoh TCP on a free
-127.0.0.1 port, shared memory off) and replays the recording as N agents
-(`cpslam.tools.replay`): distinct ids and incarnations, each in its own world (a random rigid
-transform of seed ``--seed``), at the recorded rate times ``--speed`` (``--clock sensor``:
-as an agent keeping up with its 30 Hz camera; ``wall``: as fast as the recording ran), acks
-and image requests answered. Replicas of one recording are one map in N frames: the server must find
-the loops between them and merge them. Once everything is acknowledged the replicas stay up
-(answering image requests) until the server has no loop candidate left to verify (at most
-``--linger`` seconds: a pair whose images can no longer be pulled is never verified); the
-replay figures cover that whole time. Then it finalises (``cpslam finalise``) and the bench
-reads the server's ``metrics.json`` and trajectories.
+tiny-preset `cpslam run` with ``link.record`` on, cached under ``--cache``; ``--sources K``:
+K agents of one synthetic room on distinct paths that share views, each recorded alone,
+replica k replaying recording k mod K) and, per N in ``--agents``, starts a real
+``cpslam-server`` process (tiny preset, Zenoh TCP on a free 127.0.0.1 port, shared memory
+off) and replays the recordings as N agents (`cpslam.tools.replay`): distinct ids and
+incarnations, each in its own world (a random rigid transform of seed ``--seed``), at the
+recorded rate times ``--speed`` (``--clock sensor``: as an agent keeping up with its 30 Hz
+camera; ``wall``: as fast as the recording ran), acks and image requests answered. Replicas
+are maps of one scene in N frames: the server must find the loops between them and merge
+them. Once everything is acknowledged the replicas stay up (answering image requests) until
+the server has no loop candidate left to verify (at most ``--linger`` seconds: a pair whose
+images can no longer be pulled is never verified); the replay figures cover that whole
+time. Then it finalises (``cpslam finalise``) and the bench reads the server's
+``metrics.json`` and trajectories.
 
 Per N: messages the server handled per second of replay; the server's CPU share over the
 replay (``/proc/<pid>/stat``, 1.0 = one core); the worst and 99th-percentile poll (a message
@@ -20,14 +22,15 @@ that arrives as a poll begins waits that long) and the deepest queue at the star
 (``metrics.json`` process.poll); the server's peak RSS; merges, when the last one happened
 (seconds into the replay, seen by polling the status every 0.5 s) and the time spent
 verifying loops; loops found/accepted; the joint ATE (one se3 alignment, metres) of every
-replica's final global trajectory against the recorded sequence's ground truth (replica k's
+replica's final global trajectory against its recorded sequence's ground truth (replica k's
 ground truth is the recorded one moved by its transform T_k; in the group frame the true
-alignment C inv(T_k) takes it back to C times the recorded one, the same for all replicas);
+alignment C inv(T_k) takes it back to C times the recorded one, one C for all replicas; the
+synthetic agents' ground truths share the room's frame);
 and bytes per agent per key expression, both ways, averaged over the replicas (resends
 included: ``resent`` counts the messages the replicas published again).
 
 Usage: python bench/scale.py [--agents 1 2 4 8 16] [--frames 30] [--speed 1.0] [--seed 0]
-           [--clock sensor|wall] [--linger 120] [--seq PATH] [--cache DIR]
+           [--clock sensor|wall] [--linger 120] [--sources 1] [--seq PATH] [--cache DIR]
            [--json bench/results/scale.json]
 """
 
@@ -62,6 +65,13 @@ def main() -> None:
     parser.add_argument(
         "--seq", type=Path, help="record this sequence instead (with ground truth for the ATE)"
     )
+    parser.add_argument(
+        "--sources",
+        type=int,
+        default=1,
+        help="record this many agents of the synthetic room, each alone; replica k replays "
+        "recording k mod sources",
+    )
     parser.add_argument("--speed", type=float, default=1.0)
     parser.add_argument(
         "--clock",
@@ -80,10 +90,12 @@ def main() -> None:
     parser.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "cpslam-scale")
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
-    if min(args.agents) < 1 or args.speed <= 0 or args.frames < 2:
-        parser.error("--agents must be >= 1, --speed > 0, --frames >= 2")
+    if min(args.agents) < 1 or args.speed <= 0 or args.frames < 2 or not 1 <= args.sources <= 8:
+        parser.error("--agents must be >= 1, --speed > 0, --frames >= 2, --sources in [1, 8]")
+    if args.seq is not None and args.sources != 1:
+        parser.error("--sources applies to the synthetic room, not to --seq")
     report = bench_header("scale", sys.argv)
-    seq, rec_path = record(args.cache, args.frames, args.seq)
+    sources = record(args.cache, args.frames, args.seq, args.sources)
     report.update(
         {
             "frames": args.frames if args.seq is None else None,
@@ -92,12 +104,13 @@ def main() -> None:
             "linger_max_s": args.linger,
             "seed": args.seed,
             "sequence": "synthetic room" if args.seq is None else args.seq.name,
+            "sources": len(sources),
             "runs": [],
         }
     )
     for n in args.agents:
         row = run_one(
-            n, seq, rec_path, args.cache / f"n{n}", args.speed, args.seed, args.clock, args.linger
+            n, sources, args.cache / f"n{n}", args.speed, args.seed, args.clock, args.linger
         )
         report["runs"].append(row)
         print_row(row)
@@ -107,25 +120,33 @@ def main() -> None:
         print(f"wrote {args.json}")
 
 
-def record(cache: Path, frames: int, seq: Path | None) -> tuple[Path, Path]:
-    """The sequence and its wire recording (made once per cache folder and source)."""
+def record(cache: Path, frames: int, seq: Path | None, sources: int = 1) -> list[tuple[Path, Path]]:
+    """The recorded sequences and their wire recordings, ``[(sequence, wire.rec)]``: `seq`,
+    or `sources` agents of one synthetic room (distinct paths that share views), each
+    recorded alone (made once per cache folder)."""
     from cpslam.common.config import load_config, override_config
     from cpslam.common.datasets import open_sequence
     from cpslam.run import run_collab
 
-    name = f"synth-room-{frames}" if seq is None else f"seq-{seq.resolve().name}"
-    base = cache / name
-    rec_path = base / "run" / "agent_0" / "wire.rec"
-    if seq is None:
-        seq = base / "room" / "agent_0"
-    if rec_path.is_file():
-        return seq, rec_path
-    if not seq.exists():
+    if seq is not None:
+        base = cache / f"seq-{seq.resolve().name}"
+        seqs = [seq]
+    else:
+        base = cache / (f"synth-room-{frames}" + (f"-x{sources}" if sources > 1 else ""))
+        seqs = [base / "room" / f"agent_{i}" for i in range(sources)]
+    out = [
+        (s, base / ("run" if i == 0 else f"run{i}") / "agent_0" / "wire.rec")
+        for i, s in enumerate(seqs)
+    ]
+    if all(rec.is_file() for _, rec in out):
+        return out
+    if not all(s.exists() for s in seqs):
         from cpslam.tools.synth import generate
 
         generate(
             base / "room",
             scene="room",
+            agents=sources,
             frames=frames,
             width=160,
             height=120,
@@ -136,15 +157,15 @@ def record(cache: Path, frames: int, seq: Path | None) -> tuple[Path, Path]:
 
     cfg = override_config(load_config("tiny"), ["mapping.iters_first=30", "link.record=true"])
     configure_torch(cfg.run.num_threads, cfg.run.deterministic)  # as `cpslam run` does
-    print(f"recording {seq} ...", flush=True)
-    run_collab(cfg, [open_sequence(seq)], base / "run", show_progress=False)
-    return seq, rec_path
+    for s, rec in out:
+        print(f"recording {s} ...", flush=True)
+        run_collab(cfg, [open_sequence(s)], rec.parent.parent, show_progress=False)
+    return out
 
 
 def run_one(
     n: int,
-    seq: Path,
-    rec_path: Path,
+    sources: list[tuple[Path, Path]],
     out: Path,
     speed: float,
     seed: int,
@@ -159,7 +180,7 @@ def run_one(
     from cpslam.demo import free_port
     from cpslam.tools.replay import ReplayAgent, Replica, random_rigid, replay
 
-    rec = read_recording(rec_path)
+    recordings = [read_recording(rec) for _, rec in sources]
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     # a fresh server: one finding its earlier state there would resume it (and refuse the
@@ -195,7 +216,9 @@ def run_one(
     buses = []
     try:
         rng = np.random.default_rng(seed)
-        replicas = [Replica(f"r{k}", rec, random_rigid(rng)) for k in range(n)]
+        replicas = [
+            Replica(f"r{k}", recordings[k % len(recordings)], random_rigid(rng)) for k in range(n)
+        ]
         for _ in range(n + 1):
             bus = open_client(cfg.transport, 60.0, "scale bench", limits=cfg.limits)
             if bus is None:
@@ -250,7 +273,7 @@ def run_one(
         n,
         metrics,
         server_dir,
-        seq,
+        [sources[k % len(sources)][0] for k in range(n)],
         replicas,
         played,
         wall,
@@ -321,7 +344,7 @@ def summarise(
     n: int,
     metrics: dict,
     server_dir: Path,
-    seq: Path,
+    seqs: list[Path],
     replicas: list,
     played: dict,
     wall: float,
@@ -335,13 +358,16 @@ def summarise(
     from cpslam.tools.eval import joint_ate
 
     poll = metrics["process"]["poll"]
-    sequence = open_sequence(seq)
-    gt = (np.asarray(sequence.timestamps, np.float64), sequence.gt_poses())
+    gts = {}
+    for seq in seqs:
+        if seq not in gts:
+            sequence = open_sequence(seq)
+            gts[seq] = (np.asarray(sequence.timestamps, np.float64), sequence.gt_poses())
     pairs = []
-    for r in replicas:
+    for r, seq in zip(replicas, seqs, strict=True):
         path = server_dir / "trajectories" / f"agent_{r.agent_id}_global.tum"
         if path.is_file():
-            pairs.append((gt, read_tum(path)))
+            pairs.append((gts[seq], read_tum(path)))
     ate = float(joint_ate(pairs, align="se3").overall.rmse) if pairs else None
     groups = metrics["groups"]
     per_agent = metrics["bus"]["per_agent"]
