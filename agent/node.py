@@ -136,6 +136,9 @@ class AgentNode:
         """Withdraw token, queryable and subscriptions, stop the mapping thread
         (idempotent)."""
         self.odometry.close()
+        if self.recorder is not None:  # closed without outputs: the messages stay readable
+            self.recorder.close()
+            self.recorder = None
         for handle in self._handles:
             (handle.close if hasattr(handle, "close") else handle.undeclare)()
         self._handles = []
