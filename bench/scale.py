@@ -2,8 +2,8 @@
 
 Sixteen real agents do not fit on two cores, so the bench records one real agent once (a
 tiny-preset `cpslam run` with ``link.record`` on, cached under ``--cache``; ``--sources K``:
-K agents of one synthetic room on distinct paths that share views, each recorded alone,
-replica k replaying recording k mod K) and, per N in ``--agents``, starts a real
+K pieces of one sequence, each overlapping the next by half, recorded alone, replica k
+replaying piece k mod K) and, per N in ``--agents``, starts a real
 ``cpslam-server`` process (tiny preset, Zenoh TCP on a free 127.0.0.1 port, shared memory
 off) and replays the recordings as N agents (`cpslam.tools.replay`): distinct ids and
 incarnations, each in its own world (a random rigid transform of seed ``--seed``), at the
@@ -25,7 +25,7 @@ verifying loops; loops found/accepted; the joint ATE (one se3 alignment, metres)
 replica's final global trajectory against its recorded sequence's ground truth (replica k's
 ground truth is the recorded one moved by its transform T_k; in the group frame the true
 alignment C inv(T_k) takes it back to C times the recorded one, one C for all replicas; the
-synthetic agents' ground truths share the room's frame);
+pieces' ground truths share the sequence's frame);
 and bytes per agent per key expression, both ways, averaged over the replicas (resends
 included: ``resent`` counts the messages the replicas published again).
 
@@ -59,9 +59,7 @@ ENV = {**os.environ, "OMP_NUM_THREADS": "1", "CPSLAM_RUN__NUM_THREADS": "1"}
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--agents", type=int, nargs="+", default=[1, 2, 4, 8, 16])
-    parser.add_argument(
-        "--frames", type=int, default=30, help="frames of the synthetic sequence that is recorded"
-    )
+    parser.add_argument("--frames", type=int, default=30, help="frames of each recorded piece")
     parser.add_argument(
         "--seq", type=Path, help="record this sequence instead (with ground truth for the ATE)"
     )
@@ -69,8 +67,8 @@ def main() -> None:
         "--sources",
         type=int,
         default=1,
-        help="record this many agents of the synthetic room, each alone; replica k replays "
-        "recording k mod sources",
+        help="record this many pieces of --frames frames of one sequence, each overlapping "
+        "the next by half, each alone; replica k replays recording k mod sources",
     )
     parser.add_argument("--speed", type=float, default=1.0)
     parser.add_argument(
@@ -92,8 +90,6 @@ def main() -> None:
     args = parser.parse_args()
     if min(args.agents) < 1 or args.speed <= 0 or args.frames < 2 or not 1 <= args.sources <= 8:
         parser.error("--agents must be >= 1, --speed > 0, --frames >= 2, --sources in [1, 8]")
-    if args.seq is not None and args.sources != 1:
-        parser.error("--sources applies to the synthetic room, not to --seq")
     report = bench_header("scale", sys.argv)
     sources = record(args.cache, args.frames, args.seq, args.sources)
     report.update(
@@ -120,34 +116,40 @@ def main() -> None:
         print(f"wrote {args.json}")
 
 
-def record(cache: Path, frames: int, seq: Path | None, sources: int = 1) -> list[tuple[Path, Path]]:
-    """The recorded sequences and their wire recordings, ``[(sequence, wire.rec)]``: `seq`,
-    or `sources` agents of one synthetic room (distinct paths that share views), each
-    recorded alone (made once per cache folder)."""
+def record(
+    cache: Path, frames: int, seq: Path | None, sources: int = 1
+) -> list[tuple[Path, str, Path]]:
+    """The recorded pieces and their wire recordings, ``[(sequence, frames, wire.rec)]``:
+    `seq`, or a synthetic room cut into `sources` pieces of `frames` frames, each
+    overlapping the next by half (two agents that walk one path in turn and share views),
+    each recorded alone (made once per cache folder)."""
     from cpslam.common.config import load_config, override_config
     from cpslam.common.datasets import open_sequence
     from cpslam.run import run_collab
 
+    step = frames // 2
     if seq is not None:
         base = cache / f"seq-{seq.resolve().name}"
-        seqs = [seq]
     else:
         base = cache / (f"synth-room-{frames}" + (f"-x{sources}" if sources > 1 else ""))
-        seqs = [base / "room" / f"agent_{i}" for i in range(sources)]
+        seq = base / "room" / "agent_0"
     out = [
-        (s, base / ("run" if i == 0 else f"run{i}") / "agent_0" / "wire.rec")
-        for i, s in enumerate(seqs)
+        (
+            seq,
+            f"{i * step}:{i * step + frames}",
+            base / ("run" if i == 0 else f"run{i}") / "agent_0" / "wire.rec",
+        )
+        for i in range(sources)
     ]
-    if all(rec.is_file() for _, rec in out):
+    if all(rec.is_file() for _, _, rec in out):
         return out
-    if not all(s.exists() for s in seqs):
+    if not seq.exists():
         from cpslam.tools.synth import generate
 
         generate(
             base / "room",
             scene="room",
-            agents=sources,
-            frames=frames,
+            frames=frames + (sources - 1) * step,
             width=160,
             height=120,
             seed=0,
@@ -157,15 +159,15 @@ def record(cache: Path, frames: int, seq: Path | None, sources: int = 1) -> list
 
     cfg = override_config(load_config("tiny"), ["mapping.iters_first=30", "link.record=true"])
     configure_torch(cfg.run.num_threads, cfg.run.deterministic)  # as `cpslam run` does
-    for s, rec in out:
-        print(f"recording {s} ...", flush=True)
-        run_collab(cfg, [open_sequence(s)], rec.parent.parent, show_progress=False)
+    for path, piece, rec in out:
+        print(f"recording {path} frames {piece} ...", flush=True)
+        run_collab(cfg, [open_sequence(path).select(piece)], rec.parent.parent, show_progress=False)
     return out
 
 
 def run_one(
     n: int,
-    sources: list[tuple[Path, Path]],
+    sources: list[tuple[Path, str, Path]],
     out: Path,
     speed: float,
     seed: int,
@@ -180,7 +182,7 @@ def run_one(
     from cpslam.demo import free_port
     from cpslam.tools.replay import ReplayAgent, Replica, random_rigid, replay
 
-    recordings = [read_recording(rec) for _, rec in sources]
+    recordings = [read_recording(rec) for _, _, rec in sources]
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     # a fresh server: one finding its earlier state there would resume it (and refuse the
@@ -273,7 +275,7 @@ def run_one(
         n,
         metrics,
         server_dir,
-        [sources[k % len(sources)][0] for k in range(n)],
+        [sources[k % len(sources)][:2] for k in range(n)],
         replicas,
         played,
         wall,
@@ -344,7 +346,7 @@ def summarise(
     n: int,
     metrics: dict,
     server_dir: Path,
-    seqs: list[Path],
+    seqs: list[tuple[Path, str]],
     replicas: list,
     played: dict,
     wall: float,
@@ -361,7 +363,7 @@ def summarise(
     gts = {}
     for seq in seqs:
         if seq not in gts:
-            sequence = open_sequence(seq)
+            sequence = open_sequence(seq[0]).select(seq[1])
             gts[seq] = (np.asarray(sequence.timestamps, np.float64), sequence.gt_poses())
     pairs = []
     for r, seq in zip(replicas, seqs, strict=True):
