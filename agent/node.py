@@ -28,6 +28,7 @@ from cpslam import protocol
 from cpslam.agent.link import AgentLink
 from cpslam.agent.odometry import FrameResult, Odometry
 from cpslam.agent.outbox import Outbox
+from cpslam.agent.recording import WireRecorder
 from cpslam.agent.standalone import processing_frames, write_agent_outputs
 from cpslam.common.rundir import write_json
 from cpslam.common.trajectory import sensor_seconds
@@ -115,6 +116,11 @@ class AgentNode:
         """While this says False (the server is away, or back and not yet answered) messages
         wait in the outbox instead of going out; None: always publish."""
         self.restarts = 0
+        self.recorder: WireRecorder | None = None
+        if cfg.link.record:
+            self.recorder = WireRecorder(self.run_dir / f"agent_{self.agent_id}" / "wire.rec",
+                                         self.agent_id, self.session, self.incarnation,
+                                         cfg.link.record_mb, start=time.monotonic())
 
     # ------------------------------------------------------------------------- lifecycle
 
@@ -134,6 +140,9 @@ class AgentNode:
         """Withdraw token, queryable and subscriptions, stop the mapping thread
         (idempotent)."""
         self.odometry.close()
+        if self.recorder is not None:  # closed without outputs: the messages stay readable
+            self.recorder.close()
+            self.recorder = None
         for handle in self._handles:
             (handle.close if hasattr(handle, "close") else handle.undeclare)()
         self._handles = []
@@ -151,24 +160,37 @@ class AgentNode:
             result = self.odometry.step(frame)
             out = self.link.after_step(frame, result)
         self.results.append(result)
-        self.send(out)
+        self.send(out, record=True, stamp=result.timestamp)
         self.wall_s += time.perf_counter() - t0
         return result
 
-    def send(self, messages: list[Message]) -> None:
-        """Publish agent messages on their topic keys."""
+    def send(self, messages: list[Message], record: bool = False,
+             stamp: float | None = None) -> None:
+        """Publish agent messages on their topic keys (`record`: new ones, into the wire
+        recording when ``link.record`` is on, produced at frame time `stamp`; resends and
+        update acks are not recorded)."""
         topic = {"keyframe": "keyframe", "submap_delta": "submap",
                  "decoder_weights": "decoder", "frame_poses": "frames",
                  "update_ack": "update_ack"}
-        if self.online is not None and not self.online():
-            return  # kept by the outbox (acks of updates are repeated by the server's resend)
+        # While the server is away (or back and not yet answered) messages stay in the outbox
+        # only; update acks are repeated after the server's resend.
+        online = self.online is None or self.online()
         for msg in messages:
             key = keys.agent_topic(self.session, self.agent_id, topic[msg.type])
             try:
-                self.bus.publish(key, protocol.encode(msg, self.cfg.link.zstd_level))
+                payload = protocol.encode(msg, self.cfg.link.zstd_level)
+                if online:
+                    self.bus.publish(key, payload)
             except ProtocolError as exc:
                 logger.error("agent %s: could not send %s seq %d: %s", self.agent_id, msg.type,
                              getattr(msg, "seq", -1), exc)
+                continue
+            if record and self.recorder is not None:
+                first = self.results[0].timestamp if self.results else 0.0
+                at = stamp if stamp is not None else (
+                    self.results[-1].timestamp if self.results else 0.0)
+                self.recorder.message(time.monotonic(), topic[msg.type], payload,
+                                      stamp=at - first)
 
     def poll(self) -> int:
         """Apply everything queued (acks, updates, shared decoders) without waiting."""
@@ -215,7 +237,7 @@ class AgentNode:
         with self._lock:
             self.odometry.drain()
             out = self.link.finish()
-        self.send(out)
+        self.send(out, record=True)
 
     def resend(self) -> int:
         """Publish every unacknowledged message again (after a reconnect)."""
@@ -291,6 +313,7 @@ class AgentNode:
 
         agent_dir = self.run_dir / f"agent_{self.agent_id}"
         agent_dir.mkdir(parents=True, exist_ok=True)
+        self._record_images()
         write_agent_outputs(self.odometry, agent_dir, self.results, self.wall_s, False,
                             str(self.device), self.seq)
         write_link_state(self.link, agent_dir / "link.pt")
@@ -302,6 +325,21 @@ class AgentNode:
         return agent_dir
 
     # ------------------------------------------------------------------------- helpers
+
+    def _record_images(self) -> None:
+        """Every kept keyframe's images into the wire recording, which then closes (a replay
+        answers the server's image requests from them)."""
+        if self.recorder is None:
+            return
+        with self._lock:
+            served = self.link.stats["images"]  # counts the server's requests only
+            for kf in list(self.odometry.keyframes):
+                reply = self.link.answer_image(KeyframeImageRequest(agent_id=self.agent_id,
+                                                                    kf_id=kf.kf_id))
+                self.recorder.image(kf.kf_id, protocol.encode(reply))
+            self.link.stats["images"] = served
+        self.recorder.close()
+        self.recorder = None
 
     def _decode(self, key: str, payload: bytes, expected: Any) -> Any:
         try:

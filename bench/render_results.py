@@ -289,10 +289,34 @@ def _transport(report: dict) -> str:
             + _table(rows) + "\n")
 
 
+def _scale(report: dict) -> str:
+    rows = [("agents", "msgs/s", "server CPU", "poll worst / p99 s", "max queue", "peak RSS MB",
+             "merges (last at s)", "verify s", "loops acc./found", "largest group",
+             "joint ATE m", "replay s", "resent")]
+    keys_rows = [("agents", "direction", "bytes per agent by key")]
+    for r in report["runs"]:
+        last = r["merged_at_s"][-1] if r["merged_at_s"] else "-"
+        rows.append((r["agents"], r["messages_per_s"], r["server_cpu_share"],
+                     f"{r['poll_worst_s']} / {r['poll_p99_s']}", r["max_queue_depth"],
+                     r["peak_rss_mb"], f"{r['merges']} ({last})", r["loop_verification_s"],
+                     f"{r['loops_accepted']}/{r['loops_found']}",
+                     f"{r['largest_group']}/{r['agents']}", r["joint_ate_m"],
+                     r["replay_wall_s"], r.get("resent", "-")))
+        for direction in ("from_agent", "to_agent"):
+            cells = r["bytes_per_agent"][direction]
+            keys_rows.append((r["agents"], direction.replace("_", " "),
+                              ", ".join(f"{k} {v}" for k, v in cells.items())))
+    return (f"One recorded agent ({report['sequence']}, {report.get('frames') or '-'} frames, "
+            f"tiny preset) replayed as N agents on the {report['clock']} clock at speed "
+            f"{report['speed']}, over Zenoh TCP to a `cpslam-server` process (docs/scale.md). "
+            "Server CPU: share of one core over the replay; resent: messages the replicas "
+            "published again, unacknowledged `transport.resend_after_s` after sending.\n\n"
+            + _table(rows) + "\n\n" + _table(keys_rows) + "\n")
+
+
 RENDERERS = {"odometry": _odometry, "loop_edges": _loop_edges, "collab": _collab,
              "rerun_overhead": _rerun_overhead, "persist": _persist, "flood": _flood,
-             "transport": _transport,
-             "bandwidth": _bandwidth}
+             "transport": _transport, "bandwidth": _bandwidth, "scale": _scale}
 
 
 if __name__ == "__main__":

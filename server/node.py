@@ -52,7 +52,13 @@ from cpslam.server.backend import Backend, Outgoing
 from cpslam.server.bounds import fit_status, status_size
 from cpslam.server.export import export_run
 from cpslam.server.persist import AckGate, StateWriter, detach
-from cpslam.server.traffic import DecoderFanout, KeyCounter, traffic_per_agent, traffic_per_group
+from cpslam.server.traffic import (
+    DecoderFanout,
+    KeyCounter,
+    PollTimes,
+    traffic_per_agent,
+    traffic_per_group,
+)
 
 if TYPE_CHECKING:
     from cpslam.common.bus import Bus
@@ -124,6 +130,7 @@ class ServerNode:
         # Agents' messages per concrete key (daemon thread only).
         self._received = KeyCounter(limits.max_counter_keys)
         self._fanout = DecoderFanout()  # group decoder bytes per receiving agent
+        self.poll_times = PollTimes()
 
     # ------------------------------------------------------------------------- lifecycle
 
@@ -176,6 +183,13 @@ class ServerNode:
 
     def poll(self) -> int:
         """Handle everything queued, run one back-end step, publish. Returns messages handled."""
+        t0 = time.perf_counter()
+        depth = len(self._subs[0])
+        handled = self._poll()
+        self.poll_times.add(time.perf_counter() - t0, depth, handled)
+        return handled
+
+    def _poll(self) -> int:
         self._liveliness()
         control_sub = self._subs[1]
         while (sample := control_sub.get(timeout=0)) is not None:
@@ -318,7 +332,8 @@ class ServerNode:
                          for a, rec in self.backend.registry.agents.items()}),
                     "per_group": traffic_per_group(self.session, traffic["sent"], uptime)}
                 self.finalised.metrics["process"] = {
-                    "peak_rss_mb": peak_rss_mb(), "uptime_s": time.monotonic() - self._t_start}
+                    "peak_rss_mb": peak_rss_mb(), "uptime_s": time.monotonic() - self._t_start,
+                    "cpu_s": _cpu_seconds(), "poll": self.poll_times.summary()}
                 export_run(self.finalised, self.run_dir, mark_complete=mark_complete)
         return self.finalised
 
@@ -429,3 +444,10 @@ class ServerNode:
                 with self._lock:
                     self.backend.agent_left(agent)
 
+
+def _cpu_seconds() -> float:
+    """User plus system CPU time of this process so far (s; every thread)."""
+    import resource
+
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_utime + usage.ru_stime

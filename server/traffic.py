@@ -12,12 +12,15 @@ processes frames.
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Iterable, Mapping
+
+import numpy as np
 
 from cpslam.common.bounds import OTHER
 from cpslam.protocol import keys
 
-__all__ = ["DecoderFanout", "KeyCounter", "traffic_per_agent", "traffic_per_group"]
+__all__ = ["DecoderFanout", "KeyCounter", "PollTimes", "traffic_per_agent", "traffic_per_group"]
 
 Table = dict[str, dict[str, int]]
 """{key or agent: {"messages": int, "bytes": int}}"""
@@ -57,6 +60,40 @@ class DecoderFanout(KeyCounter):
     def delivered(self, recipients: Iterable[str], nbytes: int) -> None:
         for agent in recipients:
             self.add(agent, nbytes)
+
+
+class PollTimes:
+    """How long each `ServerNode.poll` took and how many messages waited when it began.
+
+    A message that arrives just after a poll began waits for the whole poll, so the longest
+    poll is the worst latency the server adds, and the queue depth at its start how far it
+    fell behind. Percentiles are over the last `window` polls (bounded memory); worst, means
+    and totals over all.
+    """
+
+    def __init__(self, window: int = 65536) -> None:
+        self._seconds: deque[float] = deque(maxlen=window)
+        self.polls = self.handled = self.max_depth = 0
+        self.worst_s = self.total_s = 0.0
+        self._depth_sum = 0
+
+    def add(self, seconds: float, depth: int, handled: int) -> None:
+        self._seconds.append(float(seconds))
+        self.polls += 1
+        self.handled += int(handled)
+        self.total_s += float(seconds)
+        self.worst_s = max(self.worst_s, float(seconds))
+        self.max_depth = max(self.max_depth, int(depth))
+        self._depth_sum += int(depth)
+
+    def summary(self) -> dict[str, float | int]:
+        """``polls``, ``messages``, ``busy_s`` (time in polls), ``worst_s``, ``p50_s``,
+        ``p99_s``, ``max_queue_depth``, ``mean_queue_depth`` (0s before the first poll)."""
+        times = np.asarray(self._seconds) if self._seconds else np.zeros(1)
+        return {"polls": self.polls, "messages": self.handled, "busy_s": self.total_s,
+                "worst_s": self.worst_s, "p50_s": float(np.percentile(times, 50)),
+                "p99_s": float(np.percentile(times, 99)), "max_queue_depth": self.max_depth,
+                "mean_queue_depth": self._depth_sum / max(self.polls, 1)}
 
 
 def traffic_per_agent(session: str, traffic: Mapping[str, Mapping], seconds: float,

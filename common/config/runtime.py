@@ -137,6 +137,10 @@ class LinkConfig(Section):
     """Send decoder weights as int8 deltas against the last weights the server agreed on."""
     zstd_level: int = Field(default=3, ge=0, le=22)
     """zstd level of the agent's messages of 1 kB or more; 0 sends them uncompressed."""
+    record: bool = False
+    """Write every message sent, with its timing, and the keyframe images to agent_<id>/wire.rec."""
+    record_mb: PositiveFloat = 1024.0
+    """Largest wire recording (MiB); recording stops, with a warning, beyond it."""
 
 
 class RunConfig(Section):
