@@ -8,8 +8,9 @@ Messages are idempotent by their ``seq``: a replay is ignored but still acknowle
 agent that resends after a lost `Ack` converges. The ack carries the floor (every seq at or
 below it handled) and the handled ranges above it, so one lost message stalls nothing; a seq
 more than ``max_seq_ahead`` above the floor is dropped unacknowledged (it would pin memory).
-An agent id belongs to the incarnation of its first message: another incarnation is refused
-(`Refusal`) and none of its data is taken (see docs/protocol.md).
+An agent id belongs to the incarnation of the first message of its stream (``seq`` 0; a later
+message of an unknown agent is dropped unacknowledged until that one came): another
+incarnation is refused (`Refusal`) and none of its data is taken (see docs/protocol.md).
 Points and frames anchored to a keyframe that has not arrived yet wait in a bounded buffer
 until it does (messages of one agent may arrive out of order).
 
@@ -164,6 +165,15 @@ class Registry:
                 logger.warning("dropped %s from new agent %s: already %d agents (limits."
                                "max_agents); %d more refused since the last line", msg.type,
                                msg.agent_id, len(self.agents), held)
+            return []
+        known = self.agents.get(msg.agent_id)
+        if (known is None or known.incarnation is None) and int(msg.seq) != self.first_seq:
+            # An id is bound by the first message of a stream: a later one is what an agent
+            # sent to a server before this one (lost with its state); taking it would bind the
+            # id to a stream the agent is about to start over. Unacknowledged: a genuine agent
+            # resends it after its stream's first message.
+            self._drop(known, "stream start not seen", f"{msg.type} seq {msg.seq} of agent "
+                       f"{msg.agent_id}")
             return []
         rec = self.agent(msg.agent_id)
         incarnation = int(msg.incarnation)

@@ -344,8 +344,11 @@ def test_own_decoder_chain_follows_acks_and_goes_full_every_n():
         msg = P.DecoderWeights(agent_id="a", seq=seq, group_id="a", round=0, n_samples=1, **fields)
         agent.sent(seq, fields)
         sent.append(msg)
-        if seq == 4:  # the server restarts and loses the chain
+        if seq == 4:  # the server restarts from a state without the chain
+            state = reg.state_dict()
+            state["agents"][0].update(decoder=None, decoder_seq=-1)
             reg = Registry(4)
+            reg.load_state_dict(state)
         reg.handle(P.decode(P.encode(msg)))
         agent.acked(seq)
         if seq not in (4, 5):  # deltas against seqs 3 and 4, refused; 6: full again

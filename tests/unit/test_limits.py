@@ -219,12 +219,13 @@ def test_agent_ids_beyond_the_cap_are_refused_and_counted() -> None:
 
 def test_seqs_far_ahead_are_dropped_unacknowledged() -> None:
     reg = Registry(F, max_seq_ahead=100)
+    reg.handle(delta(0, []))  # the stream's first message binds the id
     for seq in range(1000, 101_000, 7):
         reg.handle(delta(seq, []))
     rec = reg.agents["a"]
     assert not rec.seqs_above and reg.dropped["seq too far ahead"] > 10_000
     # Within the window: held (nothing contiguous yet), its range acknowledged.
-    assert reg.handle(delta(50, [])) == [Ack(agent_id="a", seq=-1, received=[(50, 50)])]
+    assert reg.handle(delta(50, [])) == [Ack(agent_id="a", seq=0, received=[(50, 50)])]
     assert rec.seqs_above == {50}
 
 

@@ -39,10 +39,14 @@ def test_replayed_seq_is_ignored_and_acked():
 
 def test_out_of_order_seqs_ack_the_floor_and_the_ranges_above_it():
     reg = Registry(F)
-    # Nothing contiguous from 0 yet: the floor stays -1, the received range says what is in.
-    assert reg.handle(delta(2, [0], 0)) == [Ack(agent_id="a", seq=-1, received=[(2, 2)])]
-    assert reg.handle(keyframe(1, 1)) == [Ack(agent_id="a", seq=-1, received=[(1, 2)])]
-    assert reg.handle(keyframe(0, 0)) == [Ack(agent_id="a", seq=2)]
+    # Before the stream's first message nothing binds the id: dropped, unacknowledged.
+    assert reg.handle(delta(3, [0], 0)) == [] and "a" not in reg.agents
+    assert reg.dropped["stream start not seen"] == 1
+    assert reg.handle(keyframe(0, 0)) == [Ack(agent_id="a", seq=0)]
+    # A gap: the floor stays, the received range says what is in.
+    assert reg.handle(delta(3, [0], 0)) == [Ack(agent_id="a", seq=0, received=[(3, 3)])]
+    assert reg.handle(keyframe(2, 2)) == [Ack(agent_id="a", seq=0, received=[(2, 3)])]
+    assert reg.handle(keyframe(1, 1)) == [Ack(agent_id="a", seq=3)]
 
 
 def test_unknown_anchor_waits_for_its_keyframe():
