@@ -137,10 +137,14 @@ class FaultRun:
         for node in self.agents.values():
             node.poll()
 
-    def step(self, t: int) -> None:
+    def step(self, t: int, inject: Any = None) -> None:
+        """Every agent takes frame t and publishes; `inject(self, t)` runs next, before the
+        server reads what they published; then the exchange."""
         for aid, seq in zip(self.ids, self.seqs, strict=True):
             if aid in self.agents and t < len(seq):
                 self.agents[aid].step(next(self.streams[aid]))
+        if inject is not None:
+            inject(self, t)
         self.exchange()
         self.clock[0] += self.period
 

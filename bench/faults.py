@@ -26,10 +26,13 @@ Each fault hits agent 1 (or its link) at the middle of the stream (`--fault-at`)
 "Lost", per agent, at the end: the frames, keyframes and own map points the agent holds that
 the server does not (and points the server holds that the agent removed), frame rows missing
 from the final global trajectory, messages left unacknowledged, messages the server dropped
-(other than the refused incarnation's), and foreign points the server believes delivered that
-the agent does not hold. Joint ATE: se3-aligned RMSE of both final global trajectories
-against ground truth (`cpslam.run.evaluate_run`), and its ratio to the fault-free run.
-A scenario is one function in `SCENARIOS`: called before each frame, it injects its fault.
+(other than the refused incarnation's; decoder weights counted apart, as the agent's later
+weights replace them: `decoder_stale` says whether the server ends without the agent's newest),
+and foreign points the server believes delivered that the agent does not hold. Joint ATE:
+se3-aligned RMSE of both final global trajectories against ground truth
+(`cpslam.run.evaluate_run`), and its ratio to the fault-free run.
+A scenario is one function in `SCENARIOS`: called at each frame (after the agents published
+it, before the server reads it), it injects its fault.
 """
 
 from __future__ import annotations
@@ -57,7 +60,8 @@ QUICK_FRAMES = "0:45:3,15:60:3"
 AGENT = "1"  # the agent each fault hits
 
 # ----------------------------------------------------------------------------- scenarios
-# Each is called before every frame t; `at` is the fault's frame.
+# Each is called at every frame t after the agents published it and before the server reads
+# it; `at` is the fault's frame.
 
 
 def none(run: FaultRun, t: int, at: int) -> None:
@@ -65,7 +69,7 @@ def none(run: FaultRun, t: int, at: int) -> None:
 
 
 def agent_resume(run: FaultRun, t: int, at: int) -> None:
-    """(a) agent 1 stops after frame at-1 was published (unread) and resumes."""
+    """(a) agent 1 stops after frame `at` was published (unread) and resumes."""
     if t == at:
         state = run.stop_agent(AGENT)
         run.start_agent(AGENT, run.seqs[int(AGENT)], resume=state)
@@ -91,7 +95,7 @@ def agent_refused(run: FaultRun, t: int, at: int) -> None:
 
 
 def server_restart(run: FaultRun, t: int, at: int) -> None:
-    """(c) both agents published frame at-1; the server stops unread and restarts."""
+    """(c) both agents published frame `at`; the server stops unread and restarts."""
     if t == at:
         run.restart_server()
 
@@ -187,8 +191,7 @@ def run_scenario(name: str, cfg: Any, seqs: list, out: Path, at: int) -> dict:
     run = FaultRun(cfg, seqs, out / name)
     try:
         for t in range(max(len(s) for s in seqs)):
-            inject(run, t, at)
-            run.step(t)
+            run.step(t, lambda r, t: inject(r, t, at))
         final = run.finish()
         lost = losses(run, final)
         server_drops = dict(run.server.dropped)
