@@ -5,6 +5,7 @@ what each agent produced that the server does not hold."""
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -48,7 +49,10 @@ class FaultRun:
 
         self.cfg, self.seqs, self.run_dir = cfg, seqs, run_dir
         self.ids = [str(i) for i in range(len(seqs))]
-        run_dir.mkdir(parents=True, exist_ok=True)
+        # A state file left by an earlier run would be restored: every run starts afresh.
+        if run_dir.exists():
+            shutil.rmtree(run_dir)
+        run_dir.mkdir(parents=True)
         save_config(cfg, run_dir / "config.yaml")
         torch.manual_seed(cfg.run.seed)
         self.clock = [0.0]
