@@ -60,6 +60,7 @@ class FaultRun:
         self.network = InMemoryNetwork()
         self.state_path = run_dir / "server_state.pt"
         self.notes: dict[str, Any] = {}
+        self.unconfirmed: dict[str, int] = {}
         self.buses: list = []
         self.server = self._server()
         self.agents: dict[str, Any] = {}
@@ -153,18 +154,23 @@ class FaultRun:
         self.clock[0] += self.period
 
     def finish(self, max_rounds: int = 50) -> Any:
-        """Flush the agents, exchange until nothing is unacknowledged (the virtual clock
-        moves on so resends fall due), finalise."""
+        """Flush the agents; exchange, the virtual clock moving on so resends and periodic
+        updates fall due, until nothing is unacknowledged either way and no update is due;
+        note the updates still unconfirmed then (`unconfirmed`); finalise."""
+        backend = self.server.backend
         for node in self.agents.values():
             node.flush()
         for _ in range(max_rounds):
             self.exchange()
+            self.barrier.wait()  # the agents' last update acks are queued for the server
             pending = any(n.link.outbox for n in self.agents.values()) or any(
-                self.server.backend.sharing.foreign.pending(a) for a in self.agents
+                backend.sharing.foreign.pending(a) for a in self.agents
             )
-            if not pending:
+            if not pending and not backend.sharing.due(list(backend.groups.groups.values())):
                 break
             self.clock[0] += self.cfg.transport.resend_after_s
+        self.server.poll()  # reads those acks
+        self.unconfirmed = {a: int(backend.sharing.foreign.pending(a)) for a in self.agents}
         return self.server.finalise()
 
     def close(self) -> None:
@@ -227,7 +233,7 @@ def losses(run: FaultRun, final: Any) -> dict[str, dict[str, int]]:
             "decoders_dropped": decoders,
             "decoder_stale": int(newest is not None and rec.decoder_seq != newest),
             "foreign_points_missing": missing_foreign,
-            "updates_unconfirmed": int(foreign.pending(aid)),
+            "updates_unconfirmed": run.unconfirmed[aid],
             "resent": node.link.outbox.resent,
         }
     return out
