@@ -6,6 +6,7 @@ what each agent produced that the server does not hold."""
 from __future__ import annotations
 
 import shutil
+import time
 from pathlib import Path
 from typing import Any
 
@@ -65,7 +66,6 @@ class FaultRun:
         self.server = self._server()
         self.agents: dict[str, Any] = {}
         self.presence: dict[str, Any] = {}
-        self.joins: dict[str, int] = {}
         self.streams: dict[str, Any] = {}
         for aid, seq in zip(self.ids, seqs, strict=True):
             self.start_agent(aid, seq)
@@ -95,7 +95,7 @@ class FaultRun:
         return server
 
     def start_agent(self, aid: str, seq: Any, resume: Path | None = None) -> Any:
-        from cpslam.agent.daemon import ServerPresence
+        from cpslam.agent.daemon import ServerPresence, _answer_server
         from cpslam.agent.node import AgentNode
 
         bus = self.bus()
@@ -103,11 +103,15 @@ class FaultRun:
         if resume is not None:
             node.resume(resume)
         node.start()
-        if resume is not None:
-            node.resend()  # as `run_networked`: the server may never have had the outbox
+        presence = ServerPresence(bus, self.cfg.transport.session)
+        if not presence.wait(30.0):
+            raise RuntimeError(f"agent {aid}: no server token on the in-memory bus")
+        node.online = presence.settled
+        # as `run_networked`: a resumed agent resends its outbox, or streams afresh to a
+        # server that lost its state
+        _answer_server(node, presence, resend=resume is not None)
         self.agents[aid], self.streams[aid] = node, node.frames()
-        self.presence[aid] = ServerPresence(bus, self.cfg.transport.session)
-        self.joins[aid] = 1
+        self.presence[aid] = presence
         return node
 
     def stop_agent(self, aid: str) -> Path:
@@ -119,23 +123,37 @@ class FaultRun:
         self.presence.pop(aid).close()
         return self.run_dir / f"agent_{aid}" / "state.pt"
 
-    def restart_server(self) -> None:
+    def restart_server(self, keep_state: bool = True) -> None:
         """The server stops with whatever is queued for it unread, and starts again from its
-        state file."""
+        state file (`keep_state`) or without it. As with a real restart, the agents see its
+        token go before the new server's comes."""
+        old = self.server.backend.state_id
         self.server.close()
         self.server.bus.close()
+        for _ in range(500):
+            if not any(p.up for p in self.presence.values()):
+                break
+            time.sleep(0.01)
+        if not keep_state:
+            for path in self.state_path.parent.glob(self.state_path.name + "*"):
+                path.unlink()
         self.server = self._server()
         self.notes["server_restored"] = self.server.restored
+        self.notes["server_state_kept"] = self.server.backend.state_id == old
 
     def exchange(self) -> None:
         """As `cpslam run`: flush, the server handles and steps, flush, agents apply; agents
         resend what is unacknowledged after the server came back or after resend_after_s."""
-        for aid, node in self.agents.items():
+        from cpslam.agent.daemon import _answer_server
+
+        for aid, node in self.agents.items():  # as `run_networked` between frames
             pres = self.presence[aid]
-            if pres.joins > self.joins[aid] and pres.up:
-                self.joins[aid] = pres.joins
-                self.notes.setdefault("resent_after_rejoin", {})[aid] = node.resend()
-            node.resend_due()
+            restarts = node.restarts
+            _answer_server(node, pres)
+            if node.restarts > restarts:
+                self.notes.setdefault("stream_restarts", {})[aid] = node.restarts
+            if pres.settled():
+                node.resend_due()
         self.barrier.wait()
         self.server.poll()
         self.barrier.wait()

@@ -18,6 +18,8 @@ Each fault hits agent 1 (or its link) at the middle of the stream (`--fault-at`)
   after; then it restarts with ``--resume`` so the run can finish;
 - server_restart (c): the server stops with frames of both agents still queued, and restarts
   from its durable state (server_state.pt); the agents see its token come back and resend;
+- server_fresh (g): the same, but the server starts without its state (a new state id): the
+  agents stream their whole state again as new incarnations;
 - agent_msg_lost (d): one agent -> server message never arrives (the next one agent 1 sends);
 - update_lost (e): one server -> agent update never arrives (the next one to agent 1);
 - partition (f): `faults_netns.py`: real processes in network namespaces, agent 0's link down
@@ -100,6 +102,13 @@ def server_restart(run: FaultRun, t: int, at: int) -> None:
         run.restart_server()
 
 
+def server_fresh(run: FaultRun, t: int, at: int) -> None:
+    """(g) both agents published frame `at`; the server stops unread and restarts without its
+    state: the agents see a new state id and stream everything again as new incarnations."""
+    if t == at:
+        run.restart_server(keep_state=False)
+
+
 def agent_msg_lost(run: FaultRun, t: int, at: int) -> None:
     """(d) the next message agent 1 sends never arrives."""
     if t == at:
@@ -128,6 +137,7 @@ SCENARIOS = {
     "agent_resume": agent_resume,
     "agent_refused": agent_refused,
     "server_restart": server_restart,
+    "server_fresh": server_fresh,
     "agent_msg_lost": agent_msg_lost,
     "update_lost": update_lost,
 }

@@ -343,6 +343,9 @@ def _faults(report: dict) -> str:
                     f"{r['refused_messages_dropped']} message(s) of it dropped")
         elif "server_restored" in r:
             note = f"restored from its state: {r['server_restored']}"
+            if r.get("stream_restarts"):
+                note += (", agents streamed afresh: "
+                         + ", ".join(sorted(r["stream_restarts"])))
         elif "lost_key" in r:
             note = f"lost: `{r['lost_key']}`"
         rows.append(row(name, r, note))
