@@ -314,9 +314,66 @@ def _scale(report: dict) -> str:
             + _table(rows) + "\n\n" + _table(keys_rows) + "\n")
 
 
+
+def _faults(report: dict) -> str:
+    rows = [("fault", "nothing lost", "frames / keyframes / points lost (both agents)",
+             "unacked", "dropped", "resent", "joint ATE cm", "vs fault-free", "note")]
+
+    def row(name: str, r: dict, note: str = "") -> tuple:
+        lost = r["lost"].values()
+        total = {k: sum(a.get(k, 0) for a in lost) for k in
+                 ("frames_lost", "keyframes_lost", "points_lost", "points_stale",
+                  "unacknowledged", "dropped_by_server", "resent", "decoders_dropped",
+                  "decoder_stale")}
+        ate = r.get("joint_ate_m")
+        return (name, r["nothing_lost"],
+                f"{total['frames_lost']} / {total['keyframes_lost']} / {total['points_lost']} "
+                f"(+{total['points_stale']} stale)", total["unacknowledged"],
+                f"{total['dropped_by_server']}" + (f" (+{total['decoders_dropped']} decoder, "
+                                                   f"{total['decoder_stale']} stale)"
+                                                   if total["decoders_dropped"] else ""),
+                total["resent"],
+                "-" if ate is None else f"{100 * ate:.2f}", r.get("ate_ratio", "-"), note)
+
+    for name, r in report["scenarios"].items():
+        note = ""
+        if "refused_exit_code" in r:
+            note = (f"restart without --resume: exit {r['refused_exit_code']}, first "
+                    f"incarnation intact: {r['first_incarnation_intact']}, "
+                    f"{r['refused_messages_dropped']} message(s) of it dropped")
+        elif "server_restored" in r:
+            note = f"restored from its state: {r['server_restored']}"
+            if r.get("stream_restarts"):
+                note += (", agents streamed afresh: "
+                         + ", ".join(sorted(r["stream_restarts"])))
+        elif "lost_key" in r:
+            note = f"lost: `{r['lost_key']}`"
+        rows.append(row(name, r, note))
+    part = report.get("partition")
+    if part and "skipped" in part:
+        rows.append(("partition", "skipped", part["skipped"], "", "", "", "", "", ""))
+    elif part:
+        p = part["partitioned"]
+        rows.append(row("partition", {**p, "nothing_lost": part["nothing_lost"],
+                                      "ate_ratio": part.get("ate_ratio")},
+                        f"{part['partition_s']:g} s, real processes; their fault-free run: "
+                        f"{100 * part['fault_free_joint_ate_m']:.2f} cm"))
+    at = next(iter(report["scenarios"].values()), {}).get("fault_at_frame")
+    return (f"Preset `{report['preset']}`, frames `{', '.join(report['frames'])}` of "
+            f"`{Path(report['seq']).name}` as two agents; each fault hits agent 1 at its frame "
+            f"{at}; in process, lock-step, one torch thread (partition: real processes in "
+            "network namespaces, against a fault-free run of the same processes). Lost: what "
+            "the agents hold that the server does not; *dropped*: messages the server dropped "
+            "(decoder weights apart: the agent's later weights replace them; *stale*: the "
+            "server does not end with the agent's newest); *vs fault-free*: joint ATE ratio."
+            "\n\n"
+            + _table(rows) + "\n")
+
+
 RENDERERS = {"odometry": _odometry, "loop_edges": _loop_edges, "collab": _collab,
              "rerun_overhead": _rerun_overhead, "persist": _persist, "flood": _flood,
-             "transport": _transport, "bandwidth": _bandwidth, "scale": _scale}
+             "transport": _transport, "bandwidth": _bandwidth, "scale": _scale,
+             "faults": _faults}
 
 
 if __name__ == "__main__":

@@ -418,6 +418,11 @@ class Backend:
         self.state_id = int(state["state_id"])
         self.registry.load_state_dict(state["registry"])
         self.groups.load_state_dict(state["groups"])
+        # Agents send their decoders as deltas against the group decoder they last received:
+        # each group's current one is the base they refer to after the restart.
+        for group in self.groups.groups.values():
+            if group.decoder is not None and group.round > 0:
+                self.registry.decoder_bases.add(group.group_id, group.round, group.decoder)
         self.sharing.foreign.load_state_dict(state["foreign"])
         self.pipeline.load_state_dict(state)
         self.corrected = {(a, int(k)): T.cpu().numpy().copy() for a, k, T in state["corrected"]}

@@ -142,6 +142,7 @@ def record_state(rec: AgentRecord) -> dict:
         "decoder": None if rec.decoder is None else {k: _t(v) for k, v in rec.decoder.items()},
         "decoder_samples": rec.decoder_samples, "decoder_round": rec.decoder_round,
         "decoder_group": rec.decoder_group,
+        "decoder_seq": rec.decoder_seq,
         "alignments": {int(e): _t(T) for e, T in rec.alignments.items()},
         "seq_floor": rec.seq_floor, "seqs_above": sorted(rec.seqs_above),
         "alive": rec.alive, "messages": rec.messages, "bytes": rec.bytes,
@@ -166,6 +167,7 @@ def record_from_state(a: dict) -> AgentRecord:
     rec.decoder_samples = int(a["decoder_samples"])
     rec.decoder_round = int(a["decoder_round"])
     rec.decoder_group = str(a["decoder_group"])
+    rec.decoder_seq = int(a["decoder_seq"])
     rec.alignments = {int(e): _n(T) for e, T in a["alignments"].items()}
     rec.seq_floor, rec.seqs_above = int(a["seq_floor"]), set(a["seqs_above"])
     rec.alive, rec.messages, rec.bytes = bool(a["alive"]), int(a["messages"]), int(a["bytes"])

@@ -329,6 +329,10 @@ class Registry:
         return ""
 
     def _decoder(self, rec: AgentRecord, msg: DecoderWeights) -> str:
+        if int(msg.seq) < rec.decoder_seq:
+            # A resend that arrives after the agent's newer weights must not replace them.
+            return (f"decoder weights of seq {msg.seq}, older than the agent's seq "
+                    f"{rec.decoder_seq} the server holds")
         tensors = msg.values()
         if msg.base_round is not None:
             tensors = self.decoder_bases.apply(msg.group_id, msg.base_round, tensors)

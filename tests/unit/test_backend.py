@@ -255,6 +255,21 @@ def test_state_dict_round_trip_reproduces_status(run, scenario, tmp_path):
                                               backend.registry.agents.values())
 
 
+def test_a_restored_backend_applies_decoder_deltas_against_the_current_group_decoder(
+        run, scenario, tmp_path):
+    backend, _, clock = run
+    other = make_backend(scenario, clock)
+    other.load_state_dict(backend.state_dict())
+    shared = [g for g in other.groups.groups.values() if g.decoder is not None and g.round > 0]
+    assert shared, "the scenario closes no federated round"
+    for group in shared:
+        zero = {k: np.zeros_like(v) for k, v in group.decoder.items()}
+        rebuilt = other.registry.decoder_bases.apply(group.group_id, group.round, zero)
+        assert not isinstance(rebuilt, str), rebuilt
+        for name, value in group.decoder.items():
+            np.testing.assert_array_equal(rebuilt[name], value)
+
+
 def test_finalise_and_export_write_every_file(run, scenario, tmp_path):
     backend, _, _ = run
     result = backend.finalise()

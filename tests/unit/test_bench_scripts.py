@@ -196,3 +196,55 @@ def test_bandwidth_table_reads_a_report() -> None:
     assert "| after | 0 | 34.0 | 13.0 | 55.0 | 0.01 |" in text
     assert "| after | 34.0 | 0.2 | 0.3 / 0.4 | 0, 1 | 9 |" in text
     assert "x0.34" in text and "x1.01" in text
+
+
+def test_faults_bench_counts_dropped_decoders_apart_from_losses() -> None:
+    fault_run = _bench_module("fault_run")
+    kept, decoders = fault_run.split_drops({
+        "another incarnation": 3,
+        "decoder delta against the agent's seq 2, the server holds its weights of seq 9": 1,
+        "decoder delta against 0#7, a group decoder this server does not hold": 2,
+        "seq too far ahead": 2})
+    assert decoders == 3 and kept == {"seq too far ahead": 2}
+    zero = dict.fromkeys((*fault_run.LOSS_COUNTS, "foreign_points_missing",
+                          "updates_unconfirmed", "decoder_stale"), 0)
+    row = {"lost": {"0": zero, "1": zero}, "server_bus_dropped": {}}
+    assert fault_run.nothing_lost(row)
+    assert not fault_run.nothing_lost({**row, "lost_key": None}), "the fault never happened"
+    assert not fault_run.nothing_lost({**row, "lost": {"0": {**zero, "points_lost": 1}}})
+
+
+def test_faults_table_reads_a_report() -> None:
+    render = _bench_module("render_results")
+    lost = {"frames_lost": 0, "keyframes_lost": 0, "points_lost": 0, "points_stale": 0,
+            "unacknowledged": 0, "dropped_by_server": 0, "resent": 2}
+    base = {"fault_at_frame": 5, "lost": {"0": lost, "1": lost}, "nothing_lost": True,
+            "joint_ate_m": 0.02, "ate_ratio": 1.0}
+    report = {"preset": "tiny", "frames": ["0:9:3", "3:12:3"], "seq": "/d/kitchen",
+              "scenarios": {"none": base,
+                            "agent_refused": {**base, "joint_ate_m": 0.021, "ate_ratio": 1.05,
+                                              "refused_exit_code": 5,
+                                              "first_incarnation_intact": True,
+                                              "refused_messages_dropped": 1}},
+              "partition": {"skipped": "no iproute2"}}
+    text = render._faults(report)
+    assert "| none | True | 0 / 0 / 0 (+0 stale) | 0 | 0 | 4 | 2.00 | 1.0 |  |" in text
+    assert "| agent_refused | True |" in text and "exit 5, first incarnation intact: True" in text
+    assert "| partition | skipped | no iproute2 |" in text
+
+
+@pytest.mark.slow
+def test_faults_bench_a_lost_message_is_resent_and_nothing_is_lost(tmp_path: Path) -> None:
+    """A tiny run of the bench itself: the fault-free run and one lost agent message."""
+    import json
+
+    faults = _bench_module("faults")
+    out = tmp_path / "faults.json"
+    faults.main(["--only", "agent_msg_lost", "--frames", "0:18:3,6:24:3", "--fault-at", "2",
+                 "--out", str(tmp_path / "runs"), "--json", str(out)])
+    report = json.loads(out.read_text())
+    lossy = report["scenarios"]["agent_msg_lost"]
+    assert lossy["lost_key"].endswith(("/keyframe", "/submap", "/decoder", "/frames"))
+    assert lossy["lost"]["1"]["resent"] >= 1
+    assert lossy["nothing_lost"] and report["scenarios"]["none"]["nothing_lost"]
+    assert lossy["joint_ate_m"] is not None and "partition" not in report

@@ -113,3 +113,17 @@ def test_state_dict_round_trip():
     a, b = reg.agents["a"], other.agents["a"]
     assert b.points.ids.tolist() == a.points.ids.tolist() and len(b.pending_points) == 1
     assert b.seq_floor == 2 and b.keyframes[0].frame_index == 0
+
+
+def test_a_late_resend_of_older_decoder_weights_keeps_the_newer_ones():
+    reg = Registry(F)
+    newer = {"w": np.full(3, 2.0, np.float32)}
+    reg.handle(DecoderWeights(agent_id="a", seq=5, group_id="a", round=0, n_samples=1,
+                              tensors=newer))
+    reg.handle(DecoderWeights(agent_id="a", seq=3, group_id="a", round=0, n_samples=1,
+                              tensors={"w": np.zeros(3, np.float32)}))  # resent, arrives late
+    rec = reg.agents["a"]
+    assert rec.decoder_seq == 5 and np.array_equal(rec.decoder["w"], newer["w"])
+    assert dict(rec.dropped) == {
+        "decoder weights of seq 3, older than the agent's seq 5 the server holds": 1}
+    assert rec.seq_floor == -1 and rec.seqs_above == {3, 5}  # handled all the same: acked
