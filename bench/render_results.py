@@ -291,14 +291,15 @@ def _transport(report: dict) -> str:
 
 def _scale(report: dict) -> str:
     rows = [("agents", "msgs/s", "server CPU", "poll worst / p99 s", "max queue", "peak RSS MB",
-             "merges (last at s)", "verify s", "loops acc./found", "largest group",
-             "joint ATE m", "replay s", "resent")]
+             "merges (last at s)", "slowest merge s", "verify s", "loops acc./found",
+             "largest group", "joint ATE m", "replay s", "resent")]
     keys_rows = [("agents", "direction", "bytes per agent by key")]
     for r in report["runs"]:
         last = r["merged_at_s"][-1] if r["merged_at_s"] else "-"
         rows.append((r["agents"], r["messages_per_s"], r["server_cpu_share"],
                      f"{r['poll_worst_s']} / {r['poll_p99_s']}", r["max_queue_depth"],
-                     r["peak_rss_mb"], f"{r['merges']} ({last})", r["loop_verification_s"],
+                     r["peak_rss_mb"], f"{r['merges']} ({last})", r.get("merge_worst_s", "-"),
+                     r["loop_verification_s"],
                      f"{r['loops_accepted']}/{r['loops_found']}",
                      f"{r['largest_group']}/{r['agents']}", r["joint_ate_m"],
                      r["replay_wall_s"], r.get("resent", "-")))
@@ -310,7 +311,9 @@ def _scale(report: dict) -> str:
             f"tiny preset) replayed as N agents on the {report['clock']} clock at speed "
             f"{report['speed']}, over Zenoh TCP to a `cpslam-server` process (docs/scale.md). "
             "Server CPU: share of one core over the replay; resent: messages the replicas "
-            "published again, unacknowledged `transport.resend_after_s` after sending.\n\n"
+            "published again, unacknowledged `transport.resend_after_s` after sending; slowest "
+            "merge: the longest from a merging loop's verification to its members' updates, "
+            "the sum of its timed stages (`merges[].stages` in `metrics.json`).\n\n"
             + _table(rows) + "\n\n" + _table(keys_rows) + "\n")
 
 

@@ -396,6 +396,7 @@ def summarise(
         "peak_rss_mb": round(metrics["process"]["peak_rss_mb"], 1),
         "merges": len(metrics["merges"]),
         "merged_at_s": [round(t, 1) for t in merged_at],
+        **merge_stages(metrics["merges"]),
         "largest_group": max(len(g["members"]) for g in groups),
         "loop_verification_s": round(metrics.get("timings", {}).get("loop_verification_s", 0), 2),
         "loops_found": metrics["loops"]["found"],
@@ -405,6 +406,15 @@ def summarise(
     }
 
 
+def merge_stages(merges: list[dict]) -> dict:
+    """The slowest merge (s, from its timed stages) and each stage's worst over the merges."""
+    stages = [m.get("stages", {}) for m in merges]
+    names = sorted({k for st in stages for k in st})
+    return {"merge_worst_s": round(max((m.get("seconds", 0.0) for m in merges), default=0.0), 3),
+            "merge_stage_worst_s": {k: round(max(st.get(k, 0.0) for st in stages), 3)
+                                    for k in names}}
+
+
 def print_row(row: dict) -> None:
     last = row["merged_at_s"][-1] if row["merged_at_s"] else "-"
     print(
@@ -412,11 +422,12 @@ def print_row(row: dict) -> None:
         f"cpu {row['server_cpu_share']:.2f}"
         f"  poll worst/p99 {row['poll_worst_s']:.3f}/{row['poll_p99_s']:.3f} s  queue "
         f"{row['max_queue_depth']}  rss {row['peak_rss_mb']} MB  merges {row['merges']} (last "
-        f"{last} s, verify {row['loop_verification_s']} s)  loops "
+        f"{last} s, worst {row['merge_worst_s']} s, verify {row['loop_verification_s']} s)  loops "
         f"{row['loops_accepted']}/{row['loops_found']}  group {row['largest_group']}/"
         f"{row['agents']}  joint ATE {row['joint_ate_m']} m  resent {row['resent']}",
         flush=True,
     )
+    print("      merge stages, worst s " + json.dumps(row["merge_stage_worst_s"]), flush=True)
     print(
         "      bytes/agent from agent "
         + json.dumps(row["bytes_per_agent"]["from_agent"])

@@ -87,6 +87,9 @@ class Backend:
             seconds and leaves the rest for the next step, so a daemon stays responsive (acks,
             updates) while a backlog is worked off. None (lock-step runs): no limit, so the
             work done per step does not depend on the machine's speed.
+        verify_in_background: verify loop candidates on a worker thread (`loops.worker`), one
+            at a time, so a step never waits for a registration (the daemon); False
+            (lock-step runs, tests): inline, within `verify_budget_s`.
     """
 
     def __init__(
@@ -114,6 +117,7 @@ class Backend:
         image_cache_bytes: int | None = None,
         update_resend_after_s: float = 5.0,
         update_max_points: int = 200_000,
+        verify_in_background: bool = False,
     ) -> None:
         self.verify_budget_s = verify_budget_s
         self.state_id = new_state_id()
@@ -131,6 +135,8 @@ class Backend:
         self.groups = Groups()
         self.corrected: dict[tuple[str, int], np.ndarray] = {}
         self.merges: list[dict] = []
+        self._open_merges: dict[str, dict] = {}  # made this step; `_merge_timed` completes them
+        self._finishing = False  # `finalise` runs: verify everything left, without a budget
         self.pose_graph_runs: list[dict] = []
         self.t_start = now()
         self.pipeline = LoopPipeline(loop, fetch_image, now, self.t_start, refine_pose, database,
@@ -141,6 +147,12 @@ class Backend:
             finetune_lr=finetune_lr, color_weight=color_weight, seed=seed)
         self.sharing = MemberUpdates(self.registry, self.kf_poses, spec.grid_size, share_every_s,
                                      now, update_resend_after_s, update_max_points)
+        if verify_in_background:
+            self.pipeline.start_worker()
+
+    def close(self) -> None:
+        """Stop the verification worker, if any, after the candidate it is on (idempotent)."""
+        self.pipeline.stop_worker()
 
     @classmethod
     def from_config(cls, cfg: CpslamConfig, fetch_image: Callable[[str, int], KeyframeImage |
@@ -249,42 +261,73 @@ class Backend:
     def step(self) -> list[Outgoing]:
         """Run the pending work: loop queries and verification, merges, pose graphs,
         federated rounds, point sharing. Returns the messages to send."""
-        out: list[Outgoing] = []
         for agent, kf in self.registry.take_new_keyframes():
             self.pipeline.query(agent, kf, self.registry.agents[agent].keyframes[kf].descriptor,
                                 self.groups.group_of(agent).group_id)
         self.pipeline.release_due()
-        queue = self.pipeline.queue
-        dirty: dict[str, bool] = {}
         # Pairs that can merge two groups go first: a merge changes what every agent does.
-        queue.sort(key=lambda c: (self.groups.same_group(c.agent_a, c.agent_b)
-                                  or c.kind != "fine"))
-        t0 = time.perf_counter()
-        while queue:
-            if (self.verify_budget_s is not None
-                    and time.perf_counter() - t0 > self.verify_budget_s):
-                break
-            cand = queue.pop(0)
-            record = self.pipeline.verify(cand)
-            if record is None or not record.accepted:
-                continue
-            if not self.groups.same_group(cand.agent_a, cand.agent_b):
-                if cand.kind != "fine":
-                    continue  # a coarse pair only becomes an edge once its groups merge
-                out += self._merge(record)
-                record.merged = True
-                dirty[self.groups.group_of(cand.agent_a).group_id] = True
-                break  # publish the merge now; the remaining candidates wait for next step
-            dirty[self.groups.group_of(cand.agent_a).group_id] = True
+        self.pipeline.queue.sort(key=lambda c: (self.groups.same_group(c.agent_a, c.agent_b)
+                                                or c.kind != "fine"))
+        dirty: dict[str, bool] = {}  # groups whose pose graph changed, in order
+        out: list[Outgoing] = []
+        if self.pipeline.worker is not None:
+            for record in self.pipeline.collect(wait=self._finishing):
+                out += self._accepted(record, dirty)
+            if self._finishing:  # the rest is verified here, without a budget
+                self.pipeline.stop_worker()
+            else:
+                self.pipeline.feed()
+        if self.pipeline.worker is None:
+            out += self._verify_inline(dirty, None if self._finishing else self.verify_budget_s)
         for gid in dirty:
             if gid in self.groups.groups:
+                t0 = time.perf_counter()
                 self._optimise_group(self.groups.groups[gid])
+                t1 = time.perf_counter()
                 out += self._updates(self.groups.groups[gid])
+                self._merge_timed(gid, {"pose_graph_s": t1 - t0,
+                                        "push_s": time.perf_counter() - t1})
         for agent, msg in self.registry.take_new_decoders():
             self.federator.submit(agent, msg)
         out += _to_groups(self.federator.close_rounds())
         out += self._share()
         return out
+
+    def _verify_inline(self, dirty: dict[str, bool], budget_s: float | None) -> list[Outgoing]:
+        """Verify queued candidates on this thread until the queue is empty, a merge is made
+        (published at once; the rest wait for the next step) or `budget_s` is spent."""
+        queue, out = self.pipeline.queue, []
+        t0 = time.perf_counter()
+        while queue:
+            if budget_s is not None and time.perf_counter() - t0 > budget_s:
+                break
+            record = self.pipeline.verify(queue.pop(0))
+            out += self._accepted(record, dirty)
+            if record is not None and record.merged:
+                break
+        return out
+
+    def _accepted(self, record: LoopRecord | None, dirty: dict[str, bool]) -> list[Outgoing]:
+        """Act on a verified pair: an accepted loop inside a group marks the group's pose graph
+        for optimisation; a fine one between two groups merges them."""
+        if record is None or not record.accepted:
+            return []
+        a, b = record.agent_a, record.agent_b
+        out = []
+        if not self.groups.same_group(a, b):
+            if record.kind != "fine":
+                return []  # a coarse pair only becomes an edge once its groups merge
+            out = self._merge(record)
+            record.merged = True
+        dirty[self.groups.group_of(a).group_id] = True
+        return out
+
+    def _merge_timed(self, group_id: str, stages: dict[str, float]) -> None:
+        """Add the pose graph's and push's times to the merge this step made into the group."""
+        merge = self._open_merges.pop(group_id, None)
+        if merge is not None:
+            merge["stages"].update({k: round(v, 4) for k, v in stages.items()})
+            merge["seconds"] = round(sum(merge["stages"].values()), 4)
 
     # ----------------------------------------------------------------------------- groups
 
@@ -305,6 +348,7 @@ class Backend:
         return out
 
     def _merge(self, loop: LoopRecord) -> list[Outgoing]:
+        t0 = time.perf_counter()
         for agent in (loop.agent_a, loop.agent_b):  # a merge abandons both groups' rounds
             self.federator.abandon(self.groups.group_of(agent).group_id)
         group, _, T_new_old, joined = self.groups.merge_at_loop(
@@ -313,10 +357,19 @@ class Backend:
             self.pipeline.regroup(m, group.group_id)
             for key in [key for key in self.corrected if key[0] == m]:
                 self.corrected[key] = compose(T_new_old, self.corrected[key])
-        self.merges.append({"time": self.now() - self.t_start, "group": group.group_id,
-                            "joined": joined, "members": group.members,
-                            "loop_id": loop.loop_id})
-        return _to_groups(self.federator.merged(group))
+        t1 = time.perf_counter()
+        out = _to_groups(self.federator.merged(group))
+        # Stages of the merge (s): the loop's verification, the alignment of the two frames,
+        # the decoders' fusion; the step adds the pose graph and the push to the members.
+        stages = {"verify_s": loop.seconds, "align_s": t1 - t0,
+                  "decoders_s": time.perf_counter() - t1}
+        merge = {"time": self.now() - self.t_start, "group": group.group_id, "joined": joined,
+                 "members": group.members, "loop_id": loop.loop_id,
+                 "stages": {k: round(v, 4) for k, v in stages.items()},
+                 "seconds": round(sum(stages.values()), 4)}
+        self.merges.append(merge)
+        self._open_merges[group.group_id] = merge
+        return out
 
     def _optimise(self, groups: list[Group]) -> tuple[PoseGraph, PoseGraphResult | None,
                                                        list[LoopRecord], dict[str, Any]]:
@@ -359,7 +412,10 @@ class Backend:
     def finalise(self) -> FinalResult:
         """Final pose graph over everything, refined fused maps, trajectories, metrics."""
         self.pipeline.last_chance()  # retries are due now, not in retry_after_s
+        self._finishing = True
         self.step()
+        while self.pipeline.queue:  # a step stops after a merge; nothing queued is left out
+            self.step()
         self.registry.drop_unresolved()
         t0 = time.perf_counter()
         groups = list(self.groups.groups.values())

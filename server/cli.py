@@ -129,10 +129,11 @@ def server(
         fail(f"cannot open the server endpoint: {err}", ExitCode.ERROR)
     with bus:
         try:
-            # A verification budget keeps acks and updates flowing while loops queue up.
+            # Loops are verified on a worker thread: acks and updates flow while loops queue up.
             node = ServerNode(cfg, bus, run_dir, state_path=run_dir / STATE_FILE,
                               persist_every_s=persist_every,
-                              persist_log_every_s=persist_log_every, verify_budget_s=2.0).start()
+                              persist_log_every_s=persist_log_every,
+                              verify_in_background=True).start()
         except RuntimeError as err:
             fail(str(err), ExitCode.ERROR)
         logger.info("server listening on %s (session %s, preset %s) -> %s",

@@ -161,6 +161,7 @@ class ServerNode:
                     getattr(handle, name)()
                     break
         self._handles, self._subs = [], []
+        self.backend.close()
         if self.writer is not None:
             self.writer.close()
 

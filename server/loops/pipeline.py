@@ -13,10 +13,11 @@ accept/reject by overlap and residual (`verification`). What an accepted loop th
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -34,13 +35,25 @@ from cpslam.server.loops.verification import LoopRecord, judge, loop_record
 if TYPE_CHECKING:
     from cpslam.common.config.collab import LoopConfig
     from cpslam.protocol import KeyframeImage
+    from cpslam.server.loops.worker import VerifyWorker
 
-__all__ = ["LoopPipeline"]
+__all__ = ["Assessment", "LoopPipeline"]
 
 logger = logging.getLogger(__name__)
 
 RECENT_LOOPS = 200
 """Verified loop pairs listed in the status summary (the newest; keeps the reply small)."""
+
+
+@dataclass
+class Assessment:
+    """What `LoopPipeline.assess` found for a candidate, before `conclude` records it."""
+
+    cand: Candidate
+    reg: Any  # the registration used (None: none ran)
+    reason: str  # empty: accepted
+    unavailable: bool  # an image could not be pulled: the pair is tried again later
+    seconds: float
 
 
 class LoopPipeline:
@@ -89,7 +102,9 @@ class LoopPipeline:
         self.queue: list[Candidate] = []  # selected by the book, waiting for verification
         self.retry: list[tuple[float, Candidate]] = []  # (due time, candidate)
         self._images: OrderedDict[tuple[str, int], KeyframeImage | None] = OrderedDict()
+        self._images_lock = threading.Lock()  # the verification worker pulls images too
         self._warned_refine = False
+        self.worker: VerifyWorker | None = None  # `start_worker`
         if loop.coarse_method == "none" and not loop.refine:
             logger.warning("loop.coarse_method none without loop.refine: a loop is accepted only "
                            "where its two keyframes align at the identity")
@@ -131,58 +146,121 @@ class LoopPipeline:
     def verify(self, cand: Candidate) -> LoopRecord | None:
         """Pull both images, register, refine, judge; the record (also in `records`), or None
         when an image was unavailable and the pair will be tried again."""
+        return self.conclude(self.assess(cand, self.refiner(cand, eager=False)))
+
+    # ------------------------------------------------------- verification off the caller
+
+    def start_worker(self) -> None:
+        """Verify on a background thread from now on (`feed`, `collect`); see `worker`."""
+        from cpslam.server.loops.worker import VerifyWorker
+
+        if self.worker is None:
+            self.worker = VerifyWorker(self)
+
+    def feed(self) -> None:
+        """Hand the first queued candidate to the worker when it is idle."""
+        if self.worker is not None and self.queue and self.worker.idle:
+            self.worker.submit(self.queue.pop(0))
+
+    def collect(self, wait: bool = False) -> list[LoopRecord]:
+        """Records of the worker's finished verifications (`wait`: the one it is on too)."""
+        if self.worker is None:
+            return []
+        done = self.worker.drain() if wait else self.worker.finished()
+        return [r for r in map(self.conclude, done) if r is not None]
+
+    def stop_worker(self) -> list[LoopRecord]:
+        """Finish the candidate in hand, stop the thread, verify inline from now on."""
+        if self.worker is None:
+            return []
+        records = self.collect(wait=True)
+        self.worker.close()
+        self.worker = None
+        return records
+
+    def pending(self) -> list[Candidate]:
+        """Candidates waiting: queued, then with the worker."""
+        return [*self.queue, *(self.worker.in_flight() if self.worker is not None else [])]
+
+    def refiner(self, cand: Candidate, eager: bool) -> Callable[..., Any] | None:
+        """``(T_a_b, image_a, image_b) -> Registration | None`` refining `cand`'s coarse pose,
+        or None without refinement. `eager`: what it reads of the back end's state is read
+        now (a refiner with ``bind``), so a worker thread can run it while the state moves."""
+        refine = self.refine_pose
+        if refine is None:
+            return None
+        if eager and hasattr(refine, "bind"):
+            return refine.bind(cand)
+        return lambda T_a_b, img_a, img_b: refine(cand, T_a_b, img_a, img_b)
+
+    def assess(self, cand: Candidate, refine: Callable[..., Any] | None) -> Assessment:
+        """Pull both images, register, refine, judge; touches no state but the image cache,
+        so it may run on a worker thread (`conclude` records the outcome)."""
         t0 = time.perf_counter()
         img_a, img_b = self.image(cand.agent_a, cand.kf_a), self.image(cand.agent_b, cand.kf_b)
+        if img_a is None or img_b is None or img_a.depth is None or img_b.depth is None:
+            return Assessment(cand, None, "", True, time.perf_counter() - t0)
         reg, reason = None, ""
-        unavailable = img_a is None or img_b is None or img_a.depth is None or img_b.depth is None
-        if unavailable:
+        try:
+            reg = self.register(img_b, img_a)
+            if refine is None:
+                if not self._warned_refine:
+                    logger.info("no rendering-based refinement: coarse loop poses are used")
+                    self._warned_refine = True
+            elif reg.success or self.loop_cfg.coarse_method == "none":
+                # Without a coarse stage the refinement starts at the identity, which
+                # rarely verifies by itself: refine every pair.
+                refined = refine(reg.T_dst_src, img_a, img_b)
+                reg = refined if refined is not None else reg
+            reason = judge(reg, self.loop_cfg)
+        except Exception as exc:  # noqa: BLE001 - a failing registration rejects the pair
+            logger.exception("registration of %s failed", _pair(cand))
+            reason = f"registration error: {exc}"
+        return Assessment(cand, reg, reason, False, time.perf_counter() - t0)
+
+    def conclude(self, done: Assessment) -> LoopRecord | None:
+        """Record an `assess` outcome: the record (also in `records`), or None when an image
+        was unavailable and the pair will be tried again."""
+        cand, reg, reason = done.cand, done.reg, done.reason
+        if done.unavailable:
             # Says nothing about the pair (agent busy or gone): try again later, a few times.
             self.book.record(cand, accepted=False, retry=True)
             tries = self.book.attempts(cand)
             if self.book.status(cand) == "failed":
-                for key in ((cand.agent_a, int(cand.kf_a)), (cand.agent_b, int(cand.kf_b))):
-                    if key in self._images and self._images[key] is None:
-                        del self._images[key]  # fetch it again at the next try (0 bytes)
+                with self._images_lock:
+                    for key in ((cand.agent_a, int(cand.kf_a)), (cand.agent_b, int(cand.kf_b))):
+                        if key in self._images and self._images[key] is None:
+                            del self._images[key]  # fetch it again at the next try (0 bytes)
                 self.retry.append((self.now() + self.retry_after_s, cand))
                 logger.info("loop %s/%d - %s/%d: keyframe image unavailable (try %d of %d), "
                             "retried in %.0f s", cand.agent_a, cand.kf_a, cand.agent_b,
                             cand.kf_b, tries, self.book.max_attempts, self.retry_after_s)
                 return None
             reason = f"keyframe image unavailable ({tries} tries)"
-        else:
-            try:
-                reg = self.register(img_b, img_a)
-                if self.refine_pose is None:
-                    if not self._warned_refine:
-                        logger.info("no rendering-based refinement: coarse loop poses are used")
-                        self._warned_refine = True
-                elif reg.success or self.loop_cfg.coarse_method == "none":
-                    # Without a coarse stage the refinement starts at the identity, which
-                    # rarely verifies by itself: refine every pair.
-                    refined = self.refine_pose(cand, reg.T_dst_src, img_a, img_b)
-                    reg = refined if refined is not None else reg
-                reason = judge(reg, self.loop_cfg)
-            except Exception as exc:  # noqa: BLE001 - a failing registration rejects the pair
-                logger.exception("registration of %s failed", _pair(cand))
-                reason = f"registration error: {exc}"
         record = loop_record(len(self.records), cand, reg, reason, self.now() - self.t_start,
-                             time.perf_counter() - t0, self.loop_cfg.information_scale)
+                             done.seconds, self.loop_cfg.information_scale)
         self.records.append(record)
-        if not unavailable:  # (an unavailable pair's last try was recorded above)
+        if not done.unavailable:  # (an unavailable pair's last try was recorded above)
             self.book.record(cand, accepted=record.accepted)
         logger.info("loop %s/%d - %s/%d (%s, %.3f): %s", cand.agent_a, cand.kf_a, cand.agent_b,
                     cand.kf_b, cand.kind, cand.score, "accepted" if not reason else reason)
         return record
 
     def image(self, agent: str, kf: int) -> KeyframeImage | None:
-        """The keyframe's image, pulled once (None when it could not be)."""
+        """The keyframe's image, pulled once (None when it could not be). Thread-safe: the
+        pull itself runs outside the cache's lock."""
         key = (agent, int(kf))
-        if key not in self._images:
-            try:
-                image = self.fetch_image(agent, int(kf))
-            except Exception:  # noqa: BLE001 - an unreachable agent is a missing image
-                logger.exception("fetching keyframe image %s/%d failed", agent, kf)
-                image = None
+        with self._images_lock:
+            if key in self._images:
+                return self._images[key]
+        try:
+            image = self.fetch_image(agent, int(kf))
+        except Exception:  # noqa: BLE001 - an unreachable agent is a missing image
+            logger.exception("fetching keyframe image %s/%d failed", agent, kf)
+            image = None
+        with self._images_lock:
+            if key in self._images:  # pulled by the other thread meanwhile
+                return self._images[key]
             self._images[key] = image
             self._image_bytes += _image_nbytes(image)
             budget = self.image_cache_bytes
@@ -190,8 +268,7 @@ class LoopPipeline:
             while len(self._images) > 1 and (len(self._images) > 64 or (
                     budget is not None and self._image_bytes > budget)):
                 self._image_bytes -= _image_nbytes(self._images.popitem(last=False)[1])
-            return image
-        return self._images[key]
+        return image
 
     def status(self) -> dict:
         """The loop counts of the status summary and, as ``recent``, the last RECENT_LOOPS
@@ -203,7 +280,7 @@ class LoopPipeline:
         return {"found": self.found,
                 "accepted": sum(lp.accepted for lp in self.records),
                 "rejected": sum(not lp.accepted for lp in self.records),
-                "pending": len(self.queue), "retrying": len(self.retry), "recent": recent}
+                "pending": len(self.pending()), "retrying": len(self.retry), "recent": recent}
 
     def state_dict(self) -> dict:
         """The back end state's ``loops``, ``loop_book`` and ``queued`` entries."""
@@ -213,7 +290,7 @@ class LoopPipeline:
             # Queued and retrying candidates are verified after a reload (the book keeps no
             # pending pairs, and the queries that found them do not run again).
             "queued": [[c.agent_a, int(c.kf_a), c.agent_b, int(c.kf_b), float(c.score),
-                        str(c.kind)] for c in [*self.queue, *(c for _, c in self.retry)]],
+                        str(c.kind)] for c in [*self.pending(), *(c for _, c in self.retry)]],
         }
 
     def load_state_dict(self, state: dict) -> None:

@@ -53,6 +53,8 @@ from cpslam.common.registration import Registration, RegistrationParams, verify
 from cpslam.server.loops.registration import keyframe_intrinsics, keyframe_rgbd
 
 if TYPE_CHECKING:
+    from collections.abc import Callable
+
     from cpslam.common.config import CpslamConfig
     from cpslam.protocol import KeyframeImage
     from cpslam.server.registry import Registry
@@ -111,20 +113,35 @@ class PoseRefiner:
                  img_b: KeyframeImage) -> Registration | None:
         """The back end's ``refine_pose``: refined (or kept) registration, None when the
         refinement cannot run (the back end then keeps its coarse registration)."""
+        return self.bind(cand)(T_a_b, img_a, img_b)
+
+    def bind(self, cand: Any) -> Callable[[np.ndarray, KeyframeImage, KeyframeImage],
+                                          Registration | None]:
+        """``(T_a_b, image_a, image_b) -> Registration | None`` for `cand`, with B's sub-map and
+        decoders read now (copies): the loop verification worker refines on its own thread
+        while the registry goes on taking messages."""
+        pair = f"{cand.agent_a}/{cand.kf_a} - {cand.agent_b}/{cand.kf_b}"
         try:
             got = self.submap(cand)
+        except Exception:  # noqa: BLE001 - a failing refinement must not reject the loop
+            logger.exception("loop %s: reading the sub-map to refine against failed", pair)
+            got = "sub-map unreadable"
+        seed = zlib.crc32(f"{self.seed}:{cand.agent_a}:{cand.kf_a}:{cand.agent_b}:"
+                          f"{cand.kf_b}".encode())
+
+        def refine(T_a_b: np.ndarray, img_a: KeyframeImage,
+                   img_b: KeyframeImage) -> Registration | None:
             if isinstance(got, str):
-                logger.info("loop %s/%d - %s/%d: not refined (%s)", cand.agent_a, cand.kf_a,
-                            cand.agent_b, cand.kf_b, got)
+                logger.info("loop %s: not refined (%s)", pair, got)
                 return None
             point_map, decoders, T_B_b = got
-            seed = zlib.crc32(f"{self.seed}:{cand.agent_a}:{cand.kf_a}:{cand.agent_b}:"
-                              f"{cand.kf_b}".encode())
-            return self.refine(point_map, decoders, T_B_b, T_a_b, img_a, img_b, seed)
-        except Exception:  # noqa: BLE001 - a failing refinement must not reject the loop
-            logger.exception("refinement of loop %s/%d - %s/%d failed; coarse pose kept",
-                             cand.agent_a, cand.kf_a, cand.agent_b, cand.kf_b)
-            return None
+            try:
+                return self.refine(point_map, decoders, T_B_b, T_a_b, img_a, img_b, seed)
+            except Exception:  # noqa: BLE001 - a failing refinement must not reject the loop
+                logger.exception("refinement of loop %s failed; coarse pose kept", pair)
+                return None
+
+        return refine
 
     def submap(self, cand: Any) -> tuple[NeuralPointMap, Decoders, np.ndarray] | str:
         """B's sub-map in B's own world, B's decoders and ``T_B_b``; or why there are none."""
@@ -146,7 +163,7 @@ class PoseRefiner:
         decoders = self.spec.decoders(self.seed)
         decoders.load_state_dict({k: torch.as_tensor(v) for k, v in rec.decoder.items()})
         decoders.eval()
-        return point_map, decoders, rec.keyframes[int(cand.kf_b)].T_own_kf
+        return point_map, decoders, np.array(rec.keyframes[int(cand.kf_b)].T_own_kf)
 
     # ------------------------------------------------------------------------------ work
 

@@ -185,6 +185,11 @@ def test_inter_agent_loop_merges_groups_and_aligns(run, scenario):
     accepted = [lp for lp in backend.loops if lp.accepted]
     assert backend.loops_found >= 1 and accepted, [lp.reason for lp in backend.loops]
     assert backend.merges, "no merge happened"
+    # Each stage of the merge is timed; the whole is their sum.
+    stages = backend.merges[0]["stages"]
+    assert set(stages) == {"verify_s", "align_s", "decoders_s", "pose_graph_s", "push_s"}
+    assert all(v >= 0 for v in stages.values()) and stages["verify_s"] > 0
+    assert backend.merges[0]["seconds"] == pytest.approx(sum(stages.values()), abs=1e-3)
     assert len(backend.groups.groups) == 1
     group = backend.groups.group_of("a1")
     assert sorted(group.members) == ["a0", "a1"]
