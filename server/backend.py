@@ -18,27 +18,26 @@ after a merge, a `GroupDecoder`. `finalise` runs the last pose graph, the map re
 from __future__ import annotations
 
 import logging
-import secrets
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
 
 from cpslam.common.geometry import compose
 from cpslam.protocol import GroupDecoder, KeyframeImage, Message
 from cpslam.server.federation import Federator
+from cpslam.server.final import final_result
 from cpslam.server.fusion import MemberMap
 from cpslam.server.groups import Group, Groups
 from cpslam.server.loops import Candidate, LoopBook, LoopDatabase, LoopPipeline, LoopRecord
 from cpslam.server.pose_graph import PoseGraph, PoseGraphResult
-from cpslam.server.refinement import refine_maps
 from cpslam.server.registry import Registry
-from cpslam.server.result import FinalResult, agent_results, pose_graph_figures, run_metrics
+from cpslam.server.result import FinalResult
 from cpslam.server.sharing import MemberUpdates
-from cpslam.server.tracks import add_group_tracks, corrected_frame_poses, group_kf_poses
+from cpslam.server.state import backend_state, new_state_id, restore_backend
+from cpslam.server.tracks import add_group_tracks, group_kf_poses
 
 if TYPE_CHECKING:
     from cpslam.common.config import CpslamConfig
@@ -371,7 +370,7 @@ class Backend:
         self._open_merges[group.group_id] = merge
         return out
 
-    def _optimise(self, groups: list[Group]) -> tuple[PoseGraph, PoseGraphResult | None,
+    def optimise(self, groups: list[Group]) -> tuple[PoseGraph, PoseGraphResult | None,
                                                        list[LoopRecord], dict[str, Any]]:
         """Optimise the pose graph of these groups (every member's odometry in its group frame,
         the accepted loops between members of one group); keyframe corrections and loop
@@ -391,7 +390,7 @@ class Backend:
 
     def _optimise_group(self, group: Group) -> None:
         t0 = time.perf_counter()
-        graph, result, loops, _ = self._optimise([group])
+        graph, result, loops, _ = self.optimise([group])
         if result is not None:
             self.pose_graph_runs.append({
                 "group": group.group_id, "nodes": graph.num_nodes, "loops": len(loops),
@@ -417,28 +416,7 @@ class Backend:
         while self.pipeline.queue:  # a step stops after a merge; nothing queued is left out
             self.step()
         self.registry.drop_unresolved()
-        t0 = time.perf_counter()
-        groups = list(self.groups.groups.values())
-        graph, result, loops, trajectories = self._optimise(groups)
-        frame_fix = {} if result is None else corrected_frame_poses(graph, result, trajectories)
-        pg = pose_graph_figures(graph, result, loops)
-        t_graph = time.perf_counter() - t0
-        agents = agent_results(groups, self.registry, self.kf_poses, frame_fix)
-        t1 = time.perf_counter()
-        maps, decoders, refined = refine_maps(
-            groups, self.member_maps, lambda a: self.registry.agents[a].decoder,
-            self.federator.finetune, self.spec.feature_dim, self.spec.grid_size,
-            grid_filter=self.refine_cfg.grid_filter, finetune_iters=self.refine_cfg.finetune_iters,
-            lr_features=self.finetune_lr_features)
-        timings = {"final_pose_graph_s": t_graph, "refinement_s": time.perf_counter() - t1}
-        main = max(maps, key=lambda g: (len(self.groups.groups[g].members), len(maps[g])),
-                   default=None)
-        metrics = run_metrics(groups, self.registry, agents, self.loops, self.loops_found,
-                              self.merges, self.rounds_closed, self.pose_graph_runs, pg,
-                              refined, timings)
-        metrics["main_group"] = main  # the group written as fused_map.* / decoders_<g>.pt
-        return FinalResult(agents, maps, decoders, main, graph if graph.num_nodes else None,
-                           metrics)
+        return final_result(self)
 
     def status(self) -> dict:
         """JSON summary for the status query: agents, groups, loops, rounds."""
@@ -455,49 +433,12 @@ class Backend:
 
     def state_dict(self) -> dict:
         """Everything accepted, as python data and tensors (``torch.save``-able, loadable with
-        ``weights_only=True``). Open federated rounds are not kept: agents resubmit."""
-        loops = self.pipeline.state_dict()
-        return {
-            "state_id": self.state_id,
-            "registry": self.registry.state_dict(), "groups": self.groups.state_dict(),
-            "foreign": self.sharing.foreign.state_dict(),
-            "loops": loops["loops"],
-            "corrected": [[a, k, torch.from_numpy(T.copy())] for (a, k), T in
-                          self.corrected.items()],
-            "rounds_closed": self.rounds_closed, "merges": self.merges,
-            "pose_graph_runs": self.pose_graph_runs, "update_seq": dict(self.sharing.seq),
-            "loop_book": loops["loop_book"], "queued": loops["queued"],
-        }
+        ``weights_only=True``; `cpslam.server.state`)."""
+        return backend_state(self)
 
     def load_state_dict(self, state: dict) -> None:
         """Restore a `state_dict`; the loop database is refilled from the keyframes."""
-        self.state_id = int(state["state_id"])
-        self.registry.load_state_dict(state["registry"])
-        self.groups.load_state_dict(state["groups"])
-        # Agents send their decoders as deltas against the group decoder they last received:
-        # each group's current one is the base they refer to after the restart.
-        for group in self.groups.groups.values():
-            if group.decoder is not None and group.round > 0:
-                self.registry.decoder_bases.add(group.group_id, group.round, group.decoder)
-        self.sharing.foreign.load_state_dict(state["foreign"])
-        self.pipeline.load_state_dict(state)
-        self.corrected = {(a, int(k)): T.cpu().numpy().copy() for a, k, T in state["corrected"]}
-        self.federator.rounds = {}
-        self.federator.rounds_closed = list(state["rounds_closed"])
-        self.merges = list(state["merges"])
-        self.pose_graph_runs = list(state["pose_graph_runs"])
-        self.sharing.seq = {str(a): int(s) for a, s in state["update_seq"].items()}
-        new = set(self.registry.new_keyframes)
-        for agent, rec in self.registry.agents.items():
-            for kf in rec.kf_ids:
-                if (agent, kf) not in new:
-                    self.database.add(agent, kf, rec.keyframes[kf].descriptor,
-                                      self.groups.group_of(agent).group_id)
-
-
-def new_state_id() -> int:
-    """A random non-zero 63-bit id, from the OS (a fresh back end's state is a new one)."""
-    return secrets.randbits(63) or 1
+        restore_backend(self, state)
 
 
 def _to_groups(decoders: list[GroupDecoder]) -> list[Outgoing]:

@@ -118,3 +118,4 @@ def run_metrics(groups: list[Group], registry: Registry, agents: list[AgentResul
         "dropped": dict(registry.dropped),
         "timings": {**timings, "loop_verification_s": sum(lp["seconds"] for lp in loops)},
     }
+
