@@ -52,7 +52,9 @@ logger = logging.getLogger(__name__)
 
 class ServerPresence:
     """Tracks the server's liveliness token: whether it is up, how often it (re)appeared, the
-    state id it came with, and how many appearances the agent has answered (`handled`)."""
+    state id it came with, and how many appearances the agent has answered (`handled`).
+    `wait_for` blocks until a condition on these holds; waiters wake whenever the token comes
+    or goes."""
 
     def __init__(self, bus: Bus, session: str) -> None:
         self._cond = threading.Condition()
@@ -77,6 +79,7 @@ class ServerPresence:
     def _leave(self, _key: str) -> None:
         with self._cond:
             self.up = False
+            self._cond.notify_all()
 
     def settled(self) -> bool:
         """The server is up and its latest appearance was answered (messages may go out)."""
@@ -85,9 +88,16 @@ class ServerPresence:
     def wait(self, timeout_s: float, stop: threading.Event | None = None) -> bool:
         """Block until the server is present (True), or `timeout_s` passed or `stop` was set
         (False; `stop` is looked at every `STOP_CHECK_S`)."""
+        return self.wait_for(lambda p: p.up, timeout_s, stop)
+
+    def wait_for(self, predicate: Callable[[ServerPresence], bool], timeout_s: float,
+                 stop: threading.Event | None = None) -> bool:
+        """Block until `predicate(self)` holds (True; it is called with the lock held, after
+        each change of the token), or `timeout_s` passed or `stop` was set (False; `stop` is
+        looked at every `STOP_CHECK_S`)."""
         deadline = time.monotonic() + timeout_s
         with self._cond:
-            while not self.up:
+            while not predicate(self):
                 remaining = deadline - time.monotonic()
                 if remaining <= 0 or (stop is not None and stop.is_set()):
                     return False

@@ -33,6 +33,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
+from cpslam.agent.corrections import correct_keyframes, move_world, rigid
 from cpslam.agent.deltas import DecoderBase, SubmapMirror, encode_features
 from cpslam.agent.foreign import merge_foreign
 from cpslam.agent.keyframes import DEPTH_SCALE
@@ -160,7 +161,7 @@ class AgentLink:
         assert kf is not None  # frame 0 is always a keyframe
         self._frame_kf.append(kf.kf_id)
         self._frame_index.append(int(result.index))
-        T_kf_frame = _rigid(compose(invert(kf.T_world_cam), result.T_world_cam))
+        T_kf_frame = rigid(compose(invert(kf.T_world_cam), result.T_world_cam))
         self._pending_frames.append((result.index, result.timestamp, kf.kf_id, T_kf_frame))
         if result.is_keyframe:
             out.append(self._keyframe_msg(frame, result))
@@ -309,7 +310,7 @@ class AgentLink:
     def _apply_update(self, update: ServerUpdate) -> None:
         T_new_old = compose(update.T_group_agent, invert(self.T_group_agent))
         if not np.allclose(T_new_old, np.eye(4), atol=1e-12):
-            self._transform_world(T_new_old)
+            move_world(self.odometry, T_new_old)
         self.T_group_agent = np.asarray(update.T_group_agent, np.float64).copy()
         if update.group_id != self.group_id:
             self.round = 0  # rounds count per group: the new group's next decoder is newer
@@ -318,8 +319,8 @@ class AgentLink:
             self._mappings = max(self._mappings, self.round_every_mappings - 1)
         self.epoch, self.group_id = int(update.epoch), update.group_id
         self.group_members = list(update.group_members)
-        self._correct_keyframes(dict(zip(update.kf_ids.tolist(), update.T_group_kf,
-                                         strict=True)))
+        correct_keyframes(self.odometry, self.own, self._frame_kf,
+                          dict(zip(update.kf_ids.tolist(), update.T_group_kf, strict=True)))
         added = sum(self._merge_foreign(block) for block in update.foreign)
         if added:
             self.odometry.mark_fused()
@@ -386,41 +387,6 @@ class AgentLink:
 
     # ------------------------------------------------------------------------- internals
 
-    def _transform_world(self, T_new_old: np.ndarray) -> None:
-        """Every pose the agent holds, left-multiplied by T_new_old."""
-        pm = self.odometry.point_map
-        keys = pm.kf_keys.cpu().numpy()
-        poses = pm.kf_poses.cpu().numpy()
-        for agent in np.unique(keys[:, 0]) if len(keys) else []:
-            sel = keys[:, 0] == agent
-            moved = np.stack([_rigid(T_new_old @ T) for T in poses[sel]])
-            pm.set_keyframe_poses(keys[sel, 1], moved, int(agent))
-        for kf in self.odometry.keyframes:
-            self.odometry.keyframes.set_pose(kf.kf_id, _rigid(T_new_old @ kf.T_world_cam))
-        self.odometry.set_frame_poses([_rigid(T_new_old @ T)
-                                       for T in self.odometry.trajectory()[1]])
-
-    def _correct_keyframes(self, corrected: dict[int, np.ndarray]) -> None:
-        """Own keyframes take the corrected poses; a keyframe the server has not seen yet
-        follows the correction of the one before it, and every frame that of its keyframe."""
-        delta: dict[int, np.ndarray] = {}
-        last = np.eye(4)
-        store = self.odometry.keyframes
-        for kf in store:
-            if kf.kf_id in corrected:
-                last = compose(corrected[kf.kf_id], invert(kf.T_world_cam))
-            delta[kf.kf_id] = last
-        if not delta:
-            return
-        ids = list(delta)
-        for kf_id in ids:
-            store.set_pose(kf_id, _rigid(delta[kf_id] @ store.get(kf_id).T_world_cam))
-        self.odometry.point_map.set_keyframe_poses(
-            ids, np.stack([store.get(k).T_world_cam for k in ids]), self.own)
-        poses = self.odometry.trajectory()[1]
-        self.odometry.set_frame_poses([_rigid(delta[k] @ T)
-                                       for k, T in zip(self._frame_kf, poses, strict=True)])
-
     def _merge_foreign(self, block: ForeignPoints) -> int:
         """Add (or replace) another member's points; returns how many were added."""
         key = self.foreign_index.setdefault(
@@ -429,12 +395,3 @@ class AgentLink:
         self.stats["foreign_points"] += n
         return n
 
-
-def _rigid(T: np.ndarray) -> np.ndarray:
-    """T with its rotation projected back onto SO(3): repeated corrections must not let
-    rounding drift build up in poses that are sent on (receivers check rigidity)."""
-    T = np.array(T, np.float64)
-    u, _, vt = np.linalg.svd(T[:3, :3])
-    T[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
-    T[3] = (0.0, 0.0, 0.0, 1.0)
-    return T

@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from cpslam.agent.corrections import rigid
 from cpslam.agent.deltas import DecoderBase, SubmapMirror
 from cpslam.common.geometry import compose, invert
 from cpslam.protocol import KeyframeMsg, Message
@@ -98,8 +99,6 @@ def _keyframes(link: AgentLink) -> list[KeyframeMsg]:
 
 def _frame_poses(link: AgentLink) -> list[tuple[int, float, int, np.ndarray]]:
     """Every frame as (index, stamp, keyframe, T_kf_frame), against its keyframe's pose now."""
-    from cpslam.agent.link import _rigid
-
     store = link.odometry.keyframes
     stamps, poses = link.odometry.trajectory()
     out = []
@@ -107,5 +106,5 @@ def _frame_poses(link: AgentLink) -> list[tuple[int, float, int, np.ndarray]]:
                                       strict=True):
         if kf_id in store:
             out.append((index, float(stamp), kf_id,
-                        _rigid(compose(invert(store.get(kf_id).T_world_cam), T))))
+                        rigid(compose(invert(store.get(kf_id).T_world_cam), T))))
     return out

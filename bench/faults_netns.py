@@ -2,10 +2,11 @@
 
 The server and each agent run as real processes (`cpslam.server.cli`, `cpslam.agent_cli`,
 Zenoh over TCP), each in a Linux network namespace of its own joined to the server's by a veth
-pair (as tests/loopback/test_netns.py). Two runs: fault-free, then with agent 0's veth end
-down for `partition_s` once its first keyframe reached the server (packets vanish as on a cut
-cable; longer than the Zenoh lease, so the session is torn down and rebuilt). Needs root
-(CAP_NET_ADMIN) and iproute2; otherwise the result says why it was skipped.
+pair (`cpslam.tools.netns`, as in tests/loopback/test_netns.py). Two runs: fault-free, then
+with agent 0's veth end down for `partition_s` once its first keyframe reached the server
+(packets vanish as on a cut cable; longer than the Zenoh lease, so the session is torn down
+and rebuilt). Needs root (CAP_NET_ADMIN) and iproute2; otherwise the result says why it was
+skipped.
 
 Lost, per agent, from what the processes left: the agent's state.pt (frames, keyframes, own
 points) and metrics.json (unacknowledged, dropped by the server) against the server's durable
@@ -26,64 +27,28 @@ from typing import Any
 
 from fault_run import LOSS_COUNTS, split_drops
 
+from cpslam.tools import netns
+
 PORT = 7447
 AGENTS = ("0", "1")
 # One torch thread per process: several share few cores.
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "CPSLAM_RUN__NUM_THREADS": "1"}
 
 
-def _ip(*args: str) -> None:
-    done = subprocess.run(["ip", *args], capture_output=True, text=True, timeout=30)
-    if done.returncode != 0:
-        raise RuntimeError(f"`ip {' '.join(args)}` failed: {(done.stderr or '').strip()}")
-
-
-def _namespaces(tag: str, undo: list[list[str]]) -> tuple[dict, dict]:
-    """Server and agent namespaces joined by veth pairs; undo steps appended to `undo`."""
-    names = {"server": f"{tag}s", **{a: f"{tag}a{a}" for a in AGENTS}}
-    for ns in names.values():
-        _ip("netns", "add", ns)
-        undo.append(["netns", "del", ns])
-        _ip("-n", ns, "link", "set", "lo", "up")
-    _ip("netns", "exec", names["server"], "true")
-    links = {}
-    for i, a in enumerate(AGENTS, start=1):
-        srv_if, ag_if = f"{tag}v{a}s", f"{tag}v{a}a"
-        _ip("link", "add", srv_if, "type", "veth", "peer", "name", ag_if)
-        undo.append(["link", "del", srv_if])
-        _ip("link", "set", srv_if, "netns", names["server"])
-        _ip("link", "set", ag_if, "netns", names[a])
-        _ip("-n", names["server"], "addr", "add", f"10.78.{i}.1/24", "dev", srv_if)
-        _ip("-n", names[a], "addr", "add", f"10.78.{i}.2/24", "dev", ag_if)
-        _ip("-n", names["server"], "link", "set", srv_if, "up")
-        _ip("-n", names[a], "link", "set", ag_if, "up")
-        links[a] = (f"10.78.{i}.1", ag_if)
-    return names, links
-
-
-def _undo(undo: list[list[str]]) -> None:
-    for args in reversed(undo):
-        subprocess.run(["ip", *args], capture_output=True, timeout=30)
-    undo.clear()
-
-
-def _proc(ns: str, args: list[str], log: Path) -> subprocess.Popen:
+def _proc(prefix: list[str], args: list[str], log: Path) -> subprocess.Popen:
     with log.open("w") as fh:
         return subprocess.Popen(
-            ["ip", "netns", "exec", ns, sys.executable, *args],
+            [*prefix, sys.executable, *args],
             stdout=fh,
             stderr=subprocess.STDOUT,
             env=ENV,
         )
 
 
-def _status(ns: str, session: str) -> dict:
+def _status(net: netns.Network, session: str) -> dict:
     done = subprocess.run(
         [
-            "ip",
-            "netns",
-            "exec",
-            ns,
+            *net.prefix("server"),
             sys.executable,
             "-m",
             "cpslam",
@@ -105,8 +70,7 @@ def _status(ns: str, session: str) -> dict:
 
 
 def _one_run(
-    names: dict,
-    links: dict,
+    net: netns.Network,
     seq: Path,
     frames: list[str],
     preset: str,
@@ -118,7 +82,7 @@ def _one_run(
     out.mkdir(parents=True, exist_ok=True)
     over = [x for s in sets for x in ("--set", s)]
     server = _proc(
-        names["server"],
+        net.prefix("server"),
         [
             "-m",
             "cpslam.server.cli",
@@ -137,7 +101,7 @@ def _one_run(
     )
     agents = [
         _proc(
-            names[a],
+            net.prefix(a),
             [
                 "-m",
                 "cpslam.agent_cli",
@@ -148,7 +112,7 @@ def _one_run(
                 "--agent-id",
                 a,
                 "--connect",
-                f"tcp/{links[a][0]}:{PORT}",
+                f"tcp/{net.links[a].server_ip}:{PORT}",
                 "--session",
                 session,
                 "--preset",
@@ -166,18 +130,15 @@ def _one_run(
     try:
         if partition_s > 0:
             deadline = time.monotonic() + 900
-            while (
-                _status(names["server"], session).get("agents", {}).get("0", {}).get("keyframes", 0)
-                < 1
-            ):
+            while _status(net, session).get("agents", {}).get("0", {}).get("keyframes", 0) < 1:
                 if time.monotonic() > deadline or any(
                     p.poll() not in (None, 0) for p in (server, *agents)
                 ):
                     raise RuntimeError(f"agent 0 delivered no keyframe; see {out}/*.log")
                 time.sleep(1.0)
-            _ip("-n", names["0"], "link", "set", links["0"][1], "down")
+            net.partition("0")
             time.sleep(partition_s)
-            _ip("-n", names["0"], "link", "set", links["0"][1], "up")
+            net.heal("0")
         codes = [p.wait(1800) for p in agents]
         server.send_signal(signal.SIGTERM)  # finalise and exit
         codes.append(server.wait(600))
@@ -267,11 +228,9 @@ def partition(
     if shutil.which("ip") is None:
         return {"skipped": "iproute2 (`ip`) is not installed"}
     sets = [*(sets or []), f"run.seed={seed}", "run.num_threads=1"]
-    undo: list[list[str]] = []
     try:
-        names, links = _namespaces(f"cpf{os.getpid() % 100000}", undo)
-    except (RuntimeError, OSError, subprocess.TimeoutExpired) as err:
-        _undo(undo)
+        net = netns.create(f"cpf{os.getpid() % 100000}", AGENTS, subnet="10.78")
+    except netns.NetnsError as err:
         return {
             "skipped": f"cannot set up network namespaces here ({err}); needs root / "
             "CAP_NET_ADMIN and veth support"
@@ -281,13 +240,13 @@ def partition(
     report: dict[str, Any] = {"partition_s": partition_s}
     try:
         for name, down in (("fault_free", 0.0), ("partitioned", partition_s)):
-            row = _one_run(names, links, seq, frames, preset, sets, out / name, down)
+            row = _one_run(net, seq, frames, preset, sets, out / name, down)
             run = out / name / "run"
             row["lost"] = _losses(run, preset, sets)
             row["joint_ate_m"] = _ate(run, seq, frames, preset)
             report[name] = row
     finally:
-        _undo(undo)
+        net.remove()
     part, free = report["partitioned"], report["fault_free"]
     report["nothing_lost"] = all(v == 0 for v in part["exit_codes"].values()) and all(
         row[c] == 0 for row in part["lost"].values() for c in LOSS_COUNTS

@@ -1,5 +1,6 @@
 """The shared group decoders the server published lately: the bases agents' decoder deltas
-refer to (`DecoderWeights.base_round`).
+refer to (`DecoderWeights.base_round`); `submitted_weights` resolves an agent's submission
+against them (or against the agent's own previous weights) and checks it.
 
 Bounded: the newest ``per_group`` rounds of each group and ``max_entries`` in all (the oldest
 go first). A delta against a base no longer (or never) held cannot be applied; the registry
@@ -14,9 +15,11 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from cpslam.common.bounds import tensor_mismatch
+from cpslam.protocol import DecoderWeights
 from cpslam.protocol.quant import add_delta
 
-__all__ = ["DecoderBases", "apply_delta"]
+__all__ = ["DecoderBases", "apply_delta", "submitted_weights"]
 
 
 class DecoderBases:
@@ -56,6 +59,49 @@ class DecoderBases:
                 "does not hold"
             )
         return apply_delta(base, delta, f"{group_id}#{round}")
+
+
+def submitted_weights(
+    msg: DecoderWeights,
+    held: Mapping[str, np.ndarray] | None,
+    held_seq: int,
+    bases: DecoderBases,
+    shapes: dict[str, tuple[int, ...]] | None,
+    max_samples: int | None,
+) -> dict[str, np.ndarray] | str:
+    """The float32 weights `msg` carries, or why the server must not take them. `held`,
+    `held_seq`: the agent's weights the server holds and the seq they came with (a delta may
+    name them as its base); `shapes`: expected tensor names and shapes (None: not checked);
+    `max_samples`: largest sample count a submission may claim (None: no cap)."""
+    if int(msg.seq) < held_seq:
+        # A resend that arrives after the agent's newer weights must not replace them.
+        return (
+            f"decoder weights of seq {msg.seq}, older than the agent's seq {held_seq} the "
+            "server holds"
+        )
+    tensors = msg.values()
+    if msg.base_round is not None:
+        tensors = bases.apply(msg.group_id, msg.base_round, tensors)
+    elif msg.base_seq is not None:
+        if held is None or held_seq != msg.base_seq:
+            return (
+                f"decoder delta against the agent's seq {msg.base_seq}, the server holds its "
+                f"weights of seq {held_seq}"
+            )
+        tensors = apply_delta(held, tensors, f"seq {msg.base_seq}")
+    if isinstance(tensors, str):
+        return tensors
+    if shapes is not None:
+        reason = tensor_mismatch(tensors, shapes)
+        if reason:
+            return reason
+    n = int(msg.n_samples)
+    if max_samples is not None and n > max_samples:
+        return (
+            f"field n_samples is {n}, expected at most {max_samples} "
+            "(limits.max_federated_samples)"
+        )
+    return tensors
 
 
 def apply_delta(

@@ -5,9 +5,9 @@ on bad content: a message that contradicts what the registry holds is logged and
 a reason (counted in `Registry.dropped`); one whose handling raises is dropped and counted
 too, and its seq is reported in the ack's ``dropped`` list, so it is never left hanging.
 Messages are idempotent by their ``seq``: a replay is ignored but still acknowledged, so an
-agent that resends after a lost `Ack` converges. The ack carries the floor (every seq at or
-below it handled) and the handled ranges above it, so one lost message stalls nothing; a seq
-more than ``max_seq_ahead`` above the floor is dropped unacknowledged (it would pin memory).
+agent that resends after a lost `Ack` converges; the ack carries the floor and the handled
+ranges above it (`cpslam.server.acks`), so one lost message stalls nothing. A seq more than
+``max_seq_ahead`` above the floor is dropped unacknowledged (it would pin memory).
 An agent id belongs to the incarnation of the first message of its stream (``seq`` 0; a later
 message of an unknown agent is dropped unacknowledged until that one came): another
 incarnation is refused (`Refusal`) and none of its data is taken (see docs/protocol.md).
@@ -35,7 +35,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from cpslam.common.bounds import CappedCounter, LogThrottle, tensor_mismatch
+from cpslam.common.bounds import CappedCounter, LogThrottle
 from cpslam.common.geometry import compose, invert
 from cpslam.protocol import (
     Ack,
@@ -46,8 +46,8 @@ from cpslam.protocol import (
     Refusal,
     SubmapDelta,
 )
-from cpslam.protocol.updates import MAX_ACK_RANGES
-from cpslam.server.bases import DecoderBases, apply_delta
+from cpslam.server import acks
+from cpslam.server.bases import DecoderBases, submitted_weights
 from cpslam.server.plausibility import implausible
 from cpslam.server.points import PointTable
 from cpslam.server.records import AgentRecord, KeyframeRecord, record_from_state, record_state
@@ -196,23 +196,19 @@ class Registry:
         rec.bytes += int(nbytes)
         rec.alive = True
         seq = int(msg.seq)
-        if seq <= rec.seq_floor or seq in rec.seqs_above:
+        if acks.handled(rec, seq):
             logger.debug("agent %s: seq %d already handled", rec.agent_id, seq)
-            return self._ack(rec)
+            return acks.ack(rec)
         try:
             reason = self._apply(rec, msg)
         except Exception:  # noqa: BLE001 - a bad message must never stop the server
             logger.exception("agent %s: handling %s seq %d raised", rec.agent_id, msg.type, seq)
             reason = "handling raised"
-            rec.raised = [*rec.raised, seq][-MAX_ACK_RANGES:]
+            acks.mark_raised(rec, seq)
         if reason:
             self._drop(rec, reason, f"{msg.type} seq {seq}")
-        # A dropped message is handled too: the agent must not resend it forever.
-        rec.seqs_above.add(seq)
-        while rec.seq_floor + 1 in rec.seqs_above:
-            rec.seq_floor += 1
-            rec.seqs_above.discard(rec.seq_floor)
-        return self._ack(rec)
+        acks.mark_handled(rec, seq)  # a dropped message too (see `acks`)
+        return acks.ack(rec)
 
     def set_alignment(self, agent_id: str, epoch: int, T_group_agent: np.ndarray) -> None:
         """Record the alignment the agent is told with `epoch` (to read its later poses)."""
@@ -329,28 +325,10 @@ class Registry:
         return ""
 
     def _decoder(self, rec: AgentRecord, msg: DecoderWeights) -> str:
-        if int(msg.seq) < rec.decoder_seq:
-            # A resend that arrives after the agent's newer weights must not replace them.
-            return (f"decoder weights of seq {msg.seq}, older than the agent's seq "
-                    f"{rec.decoder_seq} the server holds")
-        tensors = msg.values()
-        if msg.base_round is not None:
-            tensors = self.decoder_bases.apply(msg.group_id, msg.base_round, tensors)
-        elif msg.base_seq is not None:
-            if rec.decoder is None or rec.decoder_seq != msg.base_seq:
-                return (f"decoder delta against the agent's seq {msg.base_seq}, the server "
-                        f"holds its weights of seq {rec.decoder_seq}")
-            tensors = apply_delta(rec.decoder, tensors, f"seq {msg.base_seq}")
+        tensors = submitted_weights(msg, rec.decoder, rec.decoder_seq, self.decoder_bases,
+                                    self.decoder_shapes, self.max_federated_samples)
         if isinstance(tensors, str):
             return tensors
-        if self.decoder_shapes is not None:
-            reason = tensor_mismatch(tensors, self.decoder_shapes)
-            if reason:
-                return reason
-        n = int(msg.n_samples)
-        if self.max_federated_samples is not None and n > self.max_federated_samples:
-            return (f"field n_samples is {n}, expected at most {self.max_federated_samples} "
-                    "(limits.max_federated_samples)")
         rec.decoder = tensors
         rec.decoder_samples = int(msg.n_samples)
         rec.decoder_round = int(msg.round)
@@ -373,13 +351,6 @@ class Registry:
                 rec.points.absorb(rec.pending_points.take(ready))
         for frame in [f for f, e in rec.pending_frames.items() if e[0] in rec.keyframes]:
             rec.frames[frame] = rec.pending_frames.pop(frame)
-
-    def _ack(self, rec: AgentRecord) -> list[Ack]:
-        if rec.seq_floor < 0 and not rec.seqs_above:
-            return []
-        return [Ack(agent_id=rec.agent_id, seq=rec.seq_floor, incarnation=rec.incarnation or 0,
-                    received=_ranges(rec.seqs_above)[:MAX_ACK_RANGES],
-                    dropped=list(rec.raised))]
 
     def _drop(self, rec: AgentRecord | None, reason: str, what: str = "", count: int = 1) -> None:
         self.dropped.add(reason, count)
@@ -429,14 +400,3 @@ def registry_args(limits: LimitsConfig, descriptor_dim: int) -> dict[str, Any]:
         max_keyframes_per_agent=limits.max_keyframes_per_agent,
         max_points_per_agent=limits.max_points_per_agent,
     )
-
-
-def _ranges(seqs: set[int]) -> list[tuple[int, int]]:
-    """Sorted inclusive (lo, hi) runs of `seqs`."""
-    out: list[tuple[int, int]] = []
-    for s in sorted(seqs):
-        if out and out[-1][1] == s - 1:
-            out[-1] = (out[-1][0], s)
-        else:
-            out.append((s, s))
-    return out

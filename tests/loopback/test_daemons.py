@@ -131,10 +131,15 @@ def test_late_joiner_and_killed_agent(tmp_path: Path, endpoint: str, apartment,
     assert tum_rows(out / "trajectories" / "agent_1_global.tum") == 60
 
 
-def test_server_restart_loses_nothing(tmp_path: Path, endpoint: str, apartment,
-                                      daemons) -> None:
-    out, s = tmp_path / "run", "restart"
-    first = Daemon("server1", server_args(endpoint, s, out, "--no-report"), tmp_path)
+def _restart_server_mid_stream(tmp_path: Path, endpoint: str, apartment, daemons, s: str,
+                               keep_state: bool) -> tuple[Daemon, Daemon, Path]:
+    """Start a server and agent 0 (90 frames), SIGKILL the server once four keyframes reached
+    it, start a second server (on the first one's run folder if `keep_state`, else on a fresh
+    one), and run to the end: (agent, second server, the agent's and second server's run
+    folder)."""
+    out = tmp_path / "run"
+    first_out = out if keep_state else tmp_path / "first"
+    first = Daemon("server1", server_args(endpoint, s, first_out, "--no-report"), tmp_path)
     agent = Daemon("agent0", agent_args(apartment.agent_dirs[0], "0", endpoint, s, out,
                                         "--frames", "0:90"), tmp_path)
     daemons.extend([first, agent])
@@ -143,12 +148,20 @@ def test_server_restart_loses_nothing(tmp_path: Path, endpoint: str, apartment,
                lambda: agent_field(endpoint, s, "0", "keyframes", 0) >= 4, 300, first, agent)
     first.signal(signal.SIGKILL)
     first.proc.wait(10)
-    assert (out / "server_state.pt").is_file()
+    if keep_state:
+        assert (out / "server_state.pt").is_file()
     second = Daemon("server2", server_args(endpoint, s, out, "--no-report"), tmp_path)
     daemons.append(second)
     assert agent.wait(600) == 0, agent.tail() + "\n" + second.tail()
     finalise(endpoint, s)
     assert second.wait(120) == 0, second.tail()
+    return agent, second, out
+
+
+def test_server_restart_loses_nothing(tmp_path: Path, endpoint: str, apartment,
+                                      daemons) -> None:
+    agent, second, out = _restart_server_mid_stream(tmp_path, endpoint, apartment, daemons,
+                                                    "restart", keep_state=True)
     assert "restored server state" in second.text()
     assert "server is back; resent" in agent.text()
     assert tum_rows(out / "trajectories" / "agent_0_global.tum") == 90
@@ -159,21 +172,8 @@ def test_server_restart_loses_nothing(tmp_path: Path, endpoint: str, apartment,
 
 def test_server_restart_without_state_loses_nothing(tmp_path: Path, endpoint: str, apartment,
                                                     daemons) -> None:
-    first_out, out, s = tmp_path / "first", tmp_path / "run", "fresh"
-    first = Daemon("server1", server_args(endpoint, s, first_out, "--no-report"), tmp_path)
-    agent = Daemon("agent0", agent_args(apartment.agent_dirs[0], "0", endpoint, s, out,
-                                        "--frames", "0:90"), tmp_path)
-    daemons.extend([first, agent])
-
-    wait_until("keyframes to reach the first server",
-               lambda: agent_field(endpoint, s, "0", "keyframes", 0) >= 4, 300, first, agent)
-    first.signal(signal.SIGKILL)
-    first.proc.wait(10)
-    second = Daemon("server2", server_args(endpoint, s, out, "--no-report"), tmp_path)
-    daemons.append(second)
-    assert agent.wait(600) == 0, agent.tail() + "\n" + second.tail()
-    finalise(endpoint, s)
-    assert second.wait(120) == 0, second.tail()
+    agent, second, out = _restart_server_mid_stream(tmp_path, endpoint, apartment, daemons,
+                                                    "fresh", keep_state=False)
     assert "restored server state" not in second.text()
     assert "streaming everything again" in agent.text()
     assert tum_rows(out / "trajectories" / "agent_0_global.tum") == 90

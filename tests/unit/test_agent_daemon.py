@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from cpslam.agent.daemon import ServerPresence, run_networked
-from cpslam.common.bus import InMemoryBus, ZenohBus, open_client
+from cpslam.common.bus import InMemoryBus, InMemoryNetwork, ZenohBus, open_client
 from cpslam.common.cli import ExitCode
 from cpslam.common.config import load_config, override_config
 from cpslam.demo import free_port
@@ -76,6 +76,24 @@ def test_presence_wait_honours_stop() -> None:
         assert presence.wait(120.0, stop) is False
         assert time.monotonic() - t0 < PROMPT_S
         assert presence.wait(0.05) is False  # no stop: plain timeout
+        presence.close()
+
+
+def test_presence_wait_for_wakes_when_the_token_comes_and_goes() -> None:
+    from cpslam.protocol import keys
+
+    network = InMemoryNetwork()
+    with InMemoryBus(network) as server_bus, InMemoryBus(network) as agent_bus:
+        presence = ServerPresence(agent_bus, SESSION)
+        token = server_bus.declare_liveliness(keys.alive_server(SESSION, 7))
+        # Both changes reach the watcher on the bus's dispatcher thread, not this one.
+        assert presence.wait_for(lambda p: p.up and p.state == 7, PROMPT_S)
+        t0 = time.monotonic()
+        token.undeclare()
+        assert presence.wait_for(lambda p: not p.up, 120.0)
+        assert time.monotonic() - t0 < PROMPT_S
+        assert presence.joins == 1
+        assert presence.wait_for(lambda p: p.joins == 2, 0.05) is False  # plain timeout
         presence.close()
 
 
