@@ -4,6 +4,7 @@ fault-free run.
     python bench/faults.py                      # every fault, 7-Scenes kitchen, tiny preset
     python bench/faults.py --quick              # fewer frames, (f) left out
     python bench/faults.py --only none agent_resume --json /tmp/f.json
+    python bench/faults.py --seeds 0 1 2        # in-process faults over three seeds too
 
 Two agents stream overlapping halves of ../shared/data/7scenes-kitchen-0-299 (so they merge
 early) to one server. Faults (a)-(e) run in one process on the in-memory bus, driven in
@@ -32,7 +33,10 @@ from the final global trajectory, messages left unacknowledged, messages the ser
 weights replace them: `decoder_stale` says whether the server ends without the agent's newest),
 and foreign points the server believes delivered that the agent does not hold. Joint ATE:
 se3-aligned RMSE of both final global trajectories against ground truth
-(`cpslam.run.evaluate_run`), and its ratio to the fault-free run.
+(`cpslam.run.evaluate_run`), and its ratio to the fault-free run. A fault changes when things
+happen, and a two-agent run's ATE moves with that as it moves with the seed; `--seeds` runs the
+in-process scenarios under each seed and reports, per fault, the mean joint ATE over the seeds
+against the fault-free mean (`over_seeds`), beside the fault-free runs' own spread.
 A scenario is one function in `SCENARIOS`: called at each frame (after the agents published
 it, before the server reads it), it injects its fault.
 """
@@ -235,6 +239,9 @@ def main(argv: list[str] | None = None) -> None:
         "--set", action="append", default=[], dest="sets", help="config override a.b=value (repeat)"
     )
     ap.add_argument("--seed", type=int, default=0, help="run.seed")
+    ap.add_argument("--seeds", type=int, nargs="+", default=None,
+                    help="also run the in-process scenarios under these run.seed values and "
+                         "report the means over them (the first is the main run)")
     ap.add_argument(
         "--fault-at",
         type=int,
@@ -261,10 +268,8 @@ def main(argv: list[str] | None = None) -> None:
 
     torch.set_num_threads(1)
     frames = (args.frames or (QUICK_FRAMES if args.quick else FRAMES)).split(",")
-    sets = [*SETS, *IN_PROCESS_SETS, *args.sets, f"run.seed={args.seed}"]
-    cfg = load_config(args.preset, overrides=sets, env={})
-    seqs = [open_for_config(cfg, args.seq, frames=f) for f in frames]
-    at = args.fault_at if args.fault_at is not None else min(len(s) for s in seqs) // 2
+    seeds = args.seeds or [args.seed]
+    args.seed = seeds[0]
     faults = [n for n in (args.only or SCENARIOS) if n not in ("none", "partition")]
     names = ["none", *faults] if faults or not args.only or "none" in args.only else []
     report: dict = {
@@ -272,17 +277,29 @@ def main(argv: list[str] | None = None) -> None:
         "seq": str(args.seq),
         "frames": frames,
         "preset": args.preset,
-        "sets": sets,
+        "sets": [*SETS, *IN_PROCESS_SETS, *args.sets, f"run.seed={args.seed}"],
         "scenarios": {},
     }
-    for name in names:
-        row = run_scenario(name, cfg, seqs, args.out, at)
-        row["nothing_lost"] = nothing_lost(row)
-        report["scenarios"][name] = row
-        base = report["scenarios"]["none"]["joint_ate_m"]
-        if base and row["joint_ate_m"] is not None:
-            row["ate_ratio"] = round(row["joint_ate_m"] / base, 4)
-        _line(name, row)
+    by_seed: dict[int, dict] = {}
+    for seed in seeds:
+        sets = [*SETS, *IN_PROCESS_SETS, *args.sets, f"run.seed={seed}"]
+        cfg = load_config(args.preset, overrides=sets, env={})
+        seqs = [open_for_config(cfg, args.seq, frames=f) for f in frames]
+        at = args.fault_at if args.fault_at is not None else min(len(s) for s in seqs) // 2
+        rows = report["scenarios"] if seed == seeds[0] else {}
+        for name in names:
+            row = run_scenario(name, cfg, seqs, args.out / f"seed{seed}", at)
+            row["nothing_lost"] = nothing_lost(row)
+            rows[name] = row
+            base = rows["none"]["joint_ate_m"]
+            if base and row["joint_ate_m"] is not None:
+                row["ate_ratio"] = round(row["joint_ate_m"] / base, 4)
+            _line(f"{name} (seed {seed})", row)
+        by_seed[seed] = {n: {"joint_ate_m": r["joint_ate_m"], "nothing_lost": r["nothing_lost"]}
+                         for n, r in rows.items()}
+    if len(seeds) > 1:
+        report["by_seed"] = by_seed
+        report["over_seeds"] = over_seeds(by_seed)
     if not args.quick and (args.only is None or "partition" in args.only):
         report["partition"] = partition(
             args.seq,
@@ -300,6 +317,28 @@ def main(argv: list[str] | None = None) -> None:
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(text)
+
+
+def over_seeds(by_seed: dict[int, dict]) -> dict:
+    """Per scenario: mean joint ATE over the seeds, its ratio to the fault-free mean, the
+    per-seed ratios and whether nothing was lost under any seed."""
+    import numpy as np
+
+    out = {}
+    names = next(iter(by_seed.values())).keys()
+    for name in names:
+        ates = [r[name]["joint_ate_m"] for r in by_seed.values()]
+        base = [r["none"]["joint_ate_m"] for r in by_seed.values()]
+        if any(a is None for a in [*ates, *base]):
+            continue
+        out[name] = {"ate_mean_m": float(np.mean(ates)),
+                     "ratio_of_means": round(float(np.mean(ates) / np.mean(base)), 4),
+                     "ratios": [round(a / b, 4) for a, b in zip(ates, base, strict=True)],
+                     "nothing_lost": all(r[name]["nothing_lost"] for r in by_seed.values())}
+    none = [r["none"]["joint_ate_m"] for r in by_seed.values()]
+    if "none" in out and all(a is not None for a in none):
+        out["none"]["spread"] = round(float(max(none) / min(none)), 4)  # max / min over seeds
+    return out
 
 
 def _line(name: str, row: dict) -> None:

@@ -362,6 +362,17 @@ def _faults(report: dict) -> str:
                         f"{part['partition_s']:g} s, real processes; their fault-free run: "
                         f"{100 * part['fault_free_joint_ate_m']:.2f} cm"))
     at = next(iter(report["scenarios"].values()), {}).get("fault_at_frame")
+    seeds = ""
+    if report.get("over_seeds"):
+        seed_rows = [("fault", "nothing lost (every seed)", "joint ATE cm, mean",
+                      "mean vs fault-free mean", "per seed vs fault-free")]
+        for name, r in report["over_seeds"].items():
+            seed_rows.append((name, r["nothing_lost"], f"{100 * r['ate_mean_m']:.2f}",
+                              r["ratio_of_means"], ", ".join(f"{x:g}" for x in r["ratios"])))
+        spread = report["over_seeds"].get("none", {}).get("spread", "-")
+        seeds = (f"\n\nThe in-process faults under run seeds {', '.join(report['by_seed'])} "
+                 f"(the first is the table above); the fault-free runs' own largest / smallest "
+                 f"joint ATE over the seeds: {spread}.\n\n" + _table(seed_rows))
     return (f"Preset `{report['preset']}`, frames `{', '.join(report['frames'])}` of "
             f"`{Path(report['seq']).name}` as two agents; each fault hits agent 1 at its frame "
             f"{at}; in process, lock-step, one torch thread (partition: real processes in "
@@ -370,7 +381,7 @@ def _faults(report: dict) -> str:
             "(decoder weights apart: the agent's later weights replace them; *stale*: the "
             "server does not end with the agent's newest); *vs fault-free*: joint ATE ratio."
             "\n\n"
-            + _table(rows) + "\n")
+            + _table(rows) + seeds + "\n")
 
 
 RENDERERS = {"odometry": _odometry, "loop_edges": _loop_edges, "collab": _collab,

@@ -231,6 +231,15 @@ def test_faults_table_reads_a_report() -> None:
     assert "| none | True | 0 / 0 / 0 (+0 stale) | 0 | 0 | 4 | 2.00 | 1.0 |  |" in text
     assert "| agent_refused | True |" in text and "exit 5, first incarnation intact: True" in text
     assert "| partition | skipped | no iproute2 |" in text
+    report["by_seed"] = {"0": {}, "1": {}}
+    report["over_seeds"] = {
+        "none": {"ate_mean_m": 0.02, "ratio_of_means": 1.0, "ratios": [1.0, 1.0],
+                 "nothing_lost": True, "spread": 1.08},
+        "agent_refused": {"ate_mean_m": 0.0215, "ratio_of_means": 1.075, "ratios": [1.05, 1.1],
+                          "nothing_lost": True}}
+    text = render._faults(report)
+    assert "| agent_refused | True | 2.15 | 1.075 | 1.05, 1.1 |" in text
+    assert "under run seeds 0, 1" in text and "over the seeds: 1.08" in text
 
 
 @pytest.mark.slow
@@ -241,10 +250,18 @@ def test_faults_bench_a_lost_message_is_resent_and_nothing_is_lost(tmp_path: Pat
     faults = _bench_module("faults")
     out = tmp_path / "faults.json"
     faults.main(["--only", "agent_msg_lost", "--frames", "0:18:3,6:24:3", "--fault-at", "2",
-                 "--out", str(tmp_path / "runs"), "--json", str(out)])
+                 "--seeds", "0", "1", "--out", str(tmp_path / "runs"), "--json", str(out)])
     report = json.loads(out.read_text())
     lossy = report["scenarios"]["agent_msg_lost"]
     assert lossy["lost_key"].endswith(("/keyframe", "/submap", "/decoder", "/frames"))
     assert lossy["lost"]["1"]["resent"] >= 1
     assert lossy["nothing_lost"] and report["scenarios"]["none"]["nothing_lost"]
     assert lossy["joint_ate_m"] is not None and "partition" not in report
+    # Over both seeds: the first seed's rows are the table's, the means follow from by_seed.
+    assert list(report["by_seed"]) == ["0", "1"]
+    assert report["by_seed"]["0"]["agent_msg_lost"]["joint_ate_m"] == lossy["joint_ate_m"]
+    over = report["over_seeds"]["agent_msg_lost"]
+    ates = [report["by_seed"][s]["agent_msg_lost"]["joint_ate_m"] for s in ("0", "1")]
+    assert over["ate_mean_m"] == pytest.approx(sum(ates) / 2)
+    assert len(over["ratios"]) == 2 and over["nothing_lost"]
+    assert report["over_seeds"]["none"]["spread"] >= 1.0
