@@ -1,9 +1,9 @@
 """An agent process's loop over a bus: frames in, messages out, the server's answers applied.
 
 `AgentNode` owns one agent's `Odometry` and `AgentLink`. `start` declares the agent's
-liveliness token, its keyframe-image queryable and its subscriptions (everything the server
-sends it, and the shared decoders of every group: an agent that joins a group learns its id
-in the same step as that group's decoder is sent, so it filters instead of resubscribing);
+liveliness token, its keyframe-image queryable and its subscription to everything the server
+sends it (its group's shared decoders included: a decoder of a group the agent has not yet
+learnt it joined is kept until the update that says so);
 `step` processes one frame and publishes what the link produced; `poll` applies, without
 blocking, what arrived (acks trim the outbox, updates move the world and are acknowledged
 with an `UpdateAck`, decoders load, a `Refusal` of this incarnation sets `refused`).
@@ -111,7 +111,6 @@ class AgentNode:
         self._lock = threading.Lock()  # the image queryable reads the keyframe store
         self._handles: list[Any] = []
         self._server_sub: Any = None
-        self._decoder_sub: Any = None
         self.online: Callable[[], bool] | None = None
         """While this says False (the server is away, or back and not yet answered) messages
         wait in the outbox instead of going out; None: always publish."""
@@ -128,9 +127,8 @@ class AgentNode:
         s, a = self.session, self.agent_id
         queue = max(self.cfg.transport.queue_size, 256)
         self._server_sub = self.bus.subscribe(keys.server_agent_all(s, a), queue_size=queue)
-        self._decoder_sub = self.bus.subscribe(keys.all_group_decoders(s), queue_size=queue)
         self._handles = [
-            self._server_sub, self._decoder_sub,
+            self._server_sub,
             self.bus.declare_queryable(keys.agent_image_queryable(s, a), self._serve_image),
             self.bus.declare_liveliness(keys.alive_agent(s, a)),
         ]
@@ -196,7 +194,8 @@ class AgentNode:
         """Apply everything queued (acks, updates, shared decoders) without waiting."""
         n = 0
         while (sample := self._server_sub.get(timeout=0)) is not None:
-            msg = self._decode(sample.key, sample.payload, (ServerUpdate, Ack, Refusal))
+            msg = self._decode(sample.key, sample.payload,
+                               (ServerUpdate, Ack, Refusal, GroupDecoder))
             if isinstance(msg, Ack):
                 self._apply(sample.key, self.link.on_ack, msg)
             elif isinstance(msg, ServerUpdate) and msg.agent_id == self.agent_id:
@@ -212,10 +211,7 @@ class AgentNode:
                     self.refused = msg.reason or "refused"
                     logger.error("agent %s: the server refused this incarnation: %s",
                                  self.agent_id, self.refused)
-            n += 1
-        while (sample := self._decoder_sub.get(timeout=0)) is not None:
-            msg = self._decode(sample.key, sample.payload, GroupDecoder)
-            if msg is not None:
+            elif isinstance(msg, GroupDecoder):
                 with self._lock:
                     self._apply(sample.key, self.link.apply_decoder, msg)
             n += 1
@@ -270,7 +266,7 @@ class AgentNode:
 
     def wait_for_server_message(self, timeout_s: float) -> bool:
         """Block until something from the server is queued or `timeout_s` passed."""
-        return self._server_sub.wait(timeout_s) or len(self._decoder_sub) > 0
+        return self._server_sub.wait(timeout_s)
 
     def resume(self, state_path: Path) -> int:
         """Continue an earlier run of this agent: the odometry from `state_path` (its

@@ -25,9 +25,10 @@ __all__ = [
     "WireModel",
 ]
 
-PROTOCOL_VERSION = 2
+PROTOCOL_VERSION = 3
 """Version every message carries; a decoder rejects any other. 2: zstd-framed payloads,
-int8 sub-map features, decoder weights as deltas against a group round."""
+int8 sub-map features, decoder weights as deltas against a group round. 3: a group's decoder
+goes to each member on its own key (``server/agent/<a>/group_decoder``)."""
 
 Id = Annotated[str, AfterValidator(lambda v: check_id(v, "id"))]
 """Agent, group or session id: 1-64 chars of [A-Za-z0-9_-] (usable as a key chunk)."""

@@ -48,6 +48,8 @@ __all__ = [
     "server_agent_refusal",
     "server_agent_all",
     "all_server_agent",
+    "all_server_agent_topic",
+    "server_agent_group_decoder",
     "server_group_decoder",
     "all_group_decoders",
     "server_status",
@@ -73,7 +75,7 @@ ROOT = "cpslam"
 AGENT_TOPICS: tuple[str, ...] = ("keyframe", "submap", "decoder", "frames", "update_ack")
 """Topics an agent publishes on under ``agent/<agent>/``."""
 
-SERVER_AGENT_TOPICS: tuple[str, ...] = ("update", "ack", "refusal")
+SERVER_AGENT_TOPICS: tuple[str, ...] = ("update", "ack", "refusal", "group_decoder")
 """Topics the server publishes on under ``server/agent/<agent>/``."""
 
 _ID_RE = re.compile(r"[A-Za-z0-9_-]{1,64}")
@@ -180,6 +182,11 @@ def server_agent_refusal(session: str, agent_id: str) -> str:
     return f"{_base(session)}/server/agent/{check_id(agent_id, 'agent id')}/refusal"
 
 
+def server_agent_group_decoder(session: str, agent_id: str) -> str:
+    """Key on which the server puts its group's shared `GroupDecoder` for one member."""
+    return f"{_base(session)}/server/agent/{check_id(agent_id, 'agent id')}/group_decoder"
+
+
 def server_agent_all(session: str, agent_id: str) -> str:
     """Wildcard over everything the server sends one agent: ``…/server/agent/<agent>/*``."""
     return f"{_base(session)}/server/agent/{check_id(agent_id, 'agent id')}/*"
@@ -190,8 +197,17 @@ def all_server_agent(session: str) -> str:
     return f"{_base(session)}/server/agent/*/*"
 
 
+def all_server_agent_topic(session: str, topic: str) -> str:
+    """Wildcard over every agent for one server topic, e.g. ``cpslam/s/server/agent/*/ack``."""
+    if topic not in SERVER_AGENT_TOPICS:
+        raise ProtocolError(f"server topic must be one of {SERVER_AGENT_TOPICS}, "
+                            f"got {topic!r:.40}")
+    return f"{_base(session)}/server/agent/*/{topic}"
+
+
 def server_group_decoder(session: str, group_id: str) -> str:
-    """Key on which the server puts a group's shared `GroupDecoder`."""
+    """Key on which the server also puts a group's shared `GroupDecoder`, for observers (the
+    members get it on their own keys, `server_agent_group_decoder`)."""
     return f"{_base(session)}/server/group/{check_id(group_id, 'group id')}/decoder"
 
 

@@ -53,7 +53,6 @@ from cpslam.server.bounds import fit_status, status_size
 from cpslam.server.export import export_run
 from cpslam.server.persist import AckGate, StateWriter, detach
 from cpslam.server.traffic import (
-    DecoderFanout,
     KeyCounter,
     PollTimes,
     traffic_per_agent,
@@ -129,7 +128,6 @@ class ServerNode:
         self._subs: list[Any] = []
         # Agents' messages per concrete key (daemon thread only).
         self._received = KeyCounter(limits.max_counter_keys)
-        self._fanout = DecoderFanout()  # group decoder bytes per receiving agent
         self.poll_times = PollTimes()
 
     # ------------------------------------------------------------------------- lifecycle
@@ -257,28 +255,31 @@ class ServerNode:
         return detach(self.backend.state_dict())
 
     def publish(self, out: list[Outgoing]) -> None:
-        """Encode and put each outgoing message on its key (too large: logged, dropped)."""
+        """Encode and put each outgoing message on its key (too large: logged, dropped). A
+        group's decoder goes to each member on its own key, and once on the group's key for
+        observers (a put no one subscribes to costs nothing on the wire)."""
         for item in out:
             msg = item.message
             if item.scope == "group" and isinstance(msg, GroupDecoder):
-                key = keys.server_group_decoder(self.session, item.target)
+                group = self.backend.groups.groups.get(item.target)
+                members = list(group.members) if group is not None else []
+                targets = [keys.server_group_decoder(self.session, item.target),
+                           *(keys.server_agent_group_decoder(self.session, m) for m in members)]
             elif isinstance(msg, ServerUpdate):
-                key = keys.server_agent_update(self.session, item.target)
+                targets = [keys.server_agent_update(self.session, item.target)]
             elif isinstance(msg, Ack):
-                key = keys.server_agent_ack(self.session, item.target)
+                targets = [keys.server_agent_ack(self.session, item.target)]
             elif isinstance(msg, Refusal):
-                key = keys.server_agent_refusal(self.session, item.target)
+                targets = [keys.server_agent_refusal(self.session, item.target)]
             else:
                 logger.error("no key for outgoing %s to %s", type(msg).__name__, item.target)
                 continue
             try:
                 payload = protocol.encode(msg)
-                self.bus.publish(key, payload)
+                for key in targets:
+                    self.bus.publish(key, payload)
             except ProtocolError as exc:
-                logger.error("could not send %s on %s: %s", type(msg).__name__, key, exc)
-                continue
-            if isinstance(msg, GroupDecoder):
-                self._fanout.delivered(self._decoder_recipients(item.target), len(payload))
+                logger.error("could not send %s on %s: %s", type(msg).__name__, targets[0], exc)
 
     def fetch_image(self, agent_id: str, kf_id: int) -> KeyframeImage | None:
         """A keyframe's RGB-D from the agent's image queryable; None if it cannot be had."""
@@ -328,7 +329,7 @@ class ServerNode:
                     "dropped": dict(self.dropped), "traffic": traffic,
                     "received_by_key": received,
                     "per_agent": traffic_per_agent(
-                        self.session, by_key, uptime, self._fanout.table(),
+                        self.session, by_key, uptime,
                         {a: sensor_seconds(e[2] for e in rec.frames.values())
                          for a, rec in self.backend.registry.agents.items()}),
                     "per_group": traffic_per_group(self.session, traffic["sent"], uptime)}
@@ -393,15 +394,6 @@ class ServerNode:
         status = self.backend.status()
         with self._events_lock:
             self._status, self._status_at = status, time.monotonic()
-
-    def _decoder_recipients(self, group_id: str) -> list[str]:
-        # Every agent subscribes to every group's decoder: all agents present receive it.
-        with self._events_lock:
-            present = sorted(a for a, up in self._present.items() if up)
-        if present:
-            return present
-        group = self.backend.groups.groups.get(group_id)  # no liveliness seen (yet)
-        return list(group.members) if group is not None else []
 
     def _joined(self, key: str) -> None:
         self._event("join", key, True)

@@ -2,25 +2,25 @@
 
 The bus counts subscriptions under the subscribed expression (``agent/*/*`` for everything the
 agents publish), so `KeyCounter` counts what the server takes off that queue under each
-concrete key, and `DecoderFanout` what each agent is sent on the group decoder keys. The
-functions here turn those counts and `Bus.stats()` into the ``bus`` section of the server's
-``metrics.json`` (documented in docs/daemons.md). Rates come per second of the server's uptime
-and, where the agents' frame stamps are known, per second of sensor time
-(`common.trajectory.sensor_seconds`): bandwidth that does not depend on how fast this machine
-processes frames.
+concrete key; what the server sends each agent, its group's decoders included, goes on the
+agent's own keys and is counted by the bus. The functions here turn those counts and
+`Bus.stats()` into the ``bus`` section of the server's ``metrics.json`` (documented in
+docs/daemons.md). Rates come per second of the server's uptime and, where the agents' frame
+stamps are known, per second of sensor time (`common.trajectory.sensor_seconds`): bandwidth
+that does not depend on how fast this machine processes frames.
 """
 
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Iterable, Mapping
+from collections.abc import Mapping
 
 import numpy as np
 
 from cpslam.common.bounds import OTHER
 from cpslam.protocol import keys
 
-__all__ = ["DecoderFanout", "KeyCounter", "PollTimes", "traffic_per_agent", "traffic_per_group"]
+__all__ = ["KeyCounter", "PollTimes", "traffic_per_agent", "traffic_per_group"]
 
 Table = dict[str, dict[str, int]]
 """{key or agent: {"messages": int, "bytes": int}}"""
@@ -47,19 +47,6 @@ class KeyCounter:
 
     def table(self) -> Table:
         return {k: {"messages": m, "bytes": b} for k, (m, b) in self._rows.items()}
-
-
-class DecoderFanout(KeyCounter):
-    """Group decoder bytes per receiving agent.
-
-    Every agent subscribes to every group's decoder (``server/group/*/decoder``), so one
-    publication reaches each agent present, not only the group's members: each of them is
-    charged the whole message.
-    """
-
-    def delivered(self, recipients: Iterable[str], nbytes: int) -> None:
-        for agent in recipients:
-            self.add(agent, nbytes)
 
 
 class PollTimes:
@@ -97,7 +84,6 @@ class PollTimes:
 
 
 def traffic_per_agent(session: str, traffic: Mapping[str, Mapping], seconds: float,
-                      decoders: Table | None = None,
                       sensor_s: Mapping[str, float | None] | None = None) -> dict[str, dict]:
     """Per agent: ``from_agent`` and ``to_agent`` tables of messages, bytes and bytes/s per
     topic, their totals ``<direction>_bytes`` and ``<direction>_bytes_per_s``.
@@ -105,7 +91,7 @@ def traffic_per_agent(session: str, traffic: Mapping[str, Mapping], seconds: flo
     `traffic` is ``{"sent"|"received": {key: {"messages", "bytes"}}}``; keys are attributed with
     `keys.key_subject` (wildcard expressions and keys of no agent are skipped). Keyframe images
     count both ways under topic ``image`` (the request to the agent, the reply from it).
-    `decoders` (`DecoderFanout.table()`) adds topic ``group_decoder`` to ``to_agent``. Rates
+    A group's decoder reaches each member on its own key (topic ``group_decoder``). Rates
     are over `seconds` (the server's uptime); with `sensor_s` (agent -> sensor seconds of
     the frames it sent) every cell and total also gets ``bytes_per_sensor_s`` and the entry
     ``sensor_s``.
@@ -124,8 +110,6 @@ def traffic_per_agent(session: str, traffic: Mapping[str, Mapping], seconds: flo
             subject = keys.key_subject(session, key)
             if subject is not None and subject[0] == "agent":
                 add(subject[1], direction, subject[2], row)
-    for agent, row in (decoders or {}).items():
-        add(agent, "to_agent", "group_decoder", row)
     per_s = 1.0 / max(seconds, 1e-9)
     for agent, entry in out.items():
         sensor = (sensor_s or {}).get(agent)
@@ -145,8 +129,8 @@ def traffic_per_agent(session: str, traffic: Mapping[str, Mapping], seconds: flo
 
 
 def traffic_per_group(session: str, sent: Table, seconds: float) -> dict[str, dict]:
-    """Per group: messages, bytes and bytes/s the server published on its decoder key (once
-    per round; `traffic_per_agent` charges each receiving agent)."""
+    """Per group: messages, bytes and bytes/s the server published on its decoder key for
+    observers (once per round; each member's copy is in `traffic_per_agent`)."""
     out: dict[str, dict] = {}
     for key, row in sent.items():
         subject = keys.key_subject(session, key)

@@ -43,6 +43,7 @@ from cpslam.protocol import (
     Ack,
     DecoderWeights,
     ErrorReply,
+    GroupDecoder,
     KeyframeImage,
     KeyframeImageRequest,
     KeyframeMsg,
@@ -185,16 +186,13 @@ class ReplayAgent:
         self._lock = threading.Lock()  # the image queryable runs on the bus's thread
         self._handles: list[Any] = []
         self._server_sub: Any = None
-        self._decoder_sub: Any = None
         self._last_update = 0
 
     def start(self) -> ReplayAgent:
         s, a = self.session, self.agent_id
         self._server_sub = self.bus.subscribe(keys.server_agent_all(s, a), queue_size=256)
-        self._decoder_sub = self.bus.subscribe(keys.all_group_decoders(s), queue_size=256)
         self._handles = [
             self._server_sub,
-            self._decoder_sub,
             self.bus.declare_queryable(keys.agent_image_queryable(s, a), self._serve_image),
             self.bus.declare_liveliness(keys.alive_agent(s, a)),
         ]
@@ -247,7 +245,8 @@ class ReplayAgent:
         n = 0
         while (sample := self._server_sub.get(timeout=0)) is not None:
             n += 1
-            msg = self._decode(sample.key, sample.payload, (Ack, ServerUpdate, Refusal))
+            msg = self._decode(sample.key, sample.payload,
+                               (Ack, ServerUpdate, Refusal, GroupDecoder))
             if isinstance(msg, Ack) and msg.agent_id == self.agent_id:
                 self.outbox.on_ack(msg, self.next, self.incarnation)
             elif isinstance(msg, ServerUpdate) and msg.agent_id == self.agent_id:
@@ -267,9 +266,8 @@ class ReplayAgent:
                     logger.error(
                         "replica %s: refused by the server: %s", self.agent_id, self.refused
                     )
-        while self._decoder_sub.get(timeout=0) is not None:
-            self.stats["decoders"] += 1
-            n += 1
+            elif isinstance(msg, GroupDecoder):
+                self.stats["decoders"] += 1
         return n
 
     def wait(self, timeout_s: float) -> bool:

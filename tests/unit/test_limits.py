@@ -479,7 +479,7 @@ def test_the_agent_daemon_survives_server_messages_it_cannot_apply(
         shapes = {k: tuple(v.shape) for k, v in node.odometry.decoders.state_dict().items()}
         wrong = {k: np.zeros((3, 1), np.float32) for k in shapes}  # a server on another preset
         decoder = GroupDecoder(group_id="a0", round=1, members=["a0"], n_samples=1, tensors=wrong)
-        bus.publish(keys.server_group_decoder("default", "a0"), protocol.encode(decoder))
+        bus.publish(keys.server_agent_group_decoder("default", "a0"), protocol.encode(decoder))
         update = ServerUpdate(
             agent_id="a0",
             seq=1,

@@ -55,7 +55,7 @@ def test_round_trip_every_type(msg):
         data = decompress(data, P.max_bytes(msg.type_name()))
     wire = msgpack.unpackb(data, raw=False)
     assert list(wire)[:2] == ["type", "version"]
-    assert wire["version"] == P.PROTOCOL_VERSION == 2
+    assert wire["version"] == P.PROTOCOL_VERSION == 3
 
 
 def test_decoded_arrays_are_writable_native_copies():
@@ -128,7 +128,7 @@ def test_old_version_is_refused_by_name(zstd_level):
     if zstd_level:
         payload = compress(payload, zstd_level)
     with pytest.raises(P.ProtocolError,
-                       match="version 1, this build speaks version 2 only") as info:
+                       match="version 1, this build speaks version 3 only") as info:
         P.decode(payload)
     assert info.value.msg_type == "submap_delta"
 

@@ -64,7 +64,7 @@ def test_standalone_snippet_decodes_our_keyframe(first):
 
 
 def test_standalone_snippet_refuses_other_messages():
-    with pytest.raises(ValueError, match="not a version-2 keyframe"):
+    with pytest.raises(ValueError, match="not a version-3 keyframe"):
         _snippet()["decode_keyframe"](P.encode(sample("ack")))
 
 

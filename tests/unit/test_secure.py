@@ -83,7 +83,7 @@ def test_acl_binds_each_agent_to_its_own_keys() -> None:
     assert _allowed(acl, "operator", "ingress", "put") == ["cpslam/lab/server/control"]
     assert _allowed(acl, "operator", "ingress", "query") == ["cpslam/lab/server/status"]
     received = _allowed(acl, "agent-1", "egress", "put")
-    assert received == ["cpslam/lab/server/agent/agent-1/*", "cpslam/lab/server/group/*/decoder"]
+    assert received == ["cpslam/lab/server/agent/agent-1/*"]
     text = json.dumps([r for r in acl["rules"] if r["id"].startswith("agent agent-1")])
     assert "agent-0" not in text
     # Zenoh itself accepts the section.

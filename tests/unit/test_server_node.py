@@ -117,20 +117,20 @@ def test_traffic_per_agent_groups_keys_and_rates() -> None:
                      "cpslam/s/agent/*/*": {"messages": 4, "bytes": 1050}},
         "sent": {"cpslam/s/server/agent/a/ack": {"messages": 3, "bytes": 30},
                  "cpslam/s/agent/a/image/4": {"messages": 1, "bytes": 10},
-                 "cpslam/s/server/group/g/decoder": {"messages": 1, "bytes": 999}},
+                 "cpslam/s/server/group/g/decoder": {"messages": 1, "bytes": 999},
+                 "cpslam/s/server/agent/a/group_decoder": {"messages": 1, "bytes": 999}},
     }
-    decoders = {"a": {"messages": 1, "bytes": 999}, "b": {"messages": 1, "bytes": 999}}
-    out = traffic_per_agent("s", traffic, seconds=10.0, decoders=decoders)
+    out = traffic_per_agent("s", traffic, seconds=10.0)
     assert set(out) == {"a", "b"}  # the wildcard row is not an agent
     assert out["a"]["from_agent_bytes"] == 1000 and out["a"]["from_agent_bytes_per_s"] == 100.0
     assert out["a"]["from_agent"]["submap"] == {"messages": 1, "bytes": 900, "bytes_per_s": 90.0}
-    # Image queries go to the agent too; a group decoder reaches every agent present.
+    # Image queries go to the agent too; a group decoder reaches each member on its key.
     assert out["a"]["to_agent"] == {
         "ack": {"messages": 3, "bytes": 30, "bytes_per_s": 3.0},
         "image": {"messages": 1, "bytes": 10, "bytes_per_s": 1.0},
         "group_decoder": {"messages": 1, "bytes": 999, "bytes_per_s": 99.9}}
     assert out["b"]["from_agent"] == {"frames": {"messages": 1, "bytes": 50, "bytes_per_s": 5.0}}
-    assert out["b"]["to_agent_bytes"] == 999
+    assert out["b"]["to_agent"] == {} and out["b"]["to_agent_bytes"] == 0
     assert traffic_per_group("s", traffic["sent"], 10.0) == {
         "g": {"messages": 1, "bytes": 999, "bytes_per_s": 99.9}}
 
@@ -151,11 +151,11 @@ def test_finalise_counts_traffic_per_concrete_key_and_decoders_per_agent(
     bus = json.loads((tmp_path / "metrics.json").read_text())["bus"]
     assert bus["received_by_key"] == {keys.agent_keyframe(SESSION, "a"):
                                       {"messages": 1, "bytes": len(payload)}}
-    a, b = bus["per_agent"]["a"], bus["per_agent"]["b"]
+    a, b = bus["per_agent"]["a"], bus["per_agent"].get("b", {"to_agent": {}})
     assert a["from_agent"]["keyframe"]["bytes"] == len(payload) == a["from_agent_bytes"]
     assert a["from_agent"]["keyframe"]["bytes_per_s"] > 0
     assert a["to_agent"]["group_decoder"]["bytes"] == sent
-    assert b["to_agent"]["group_decoder"]["bytes"] == sent  # not a member, but subscribed
+    assert "group_decoder" not in b["to_agent"]  # present, but not a member: not sent
     assert bus["per_group"]["a"]["bytes"] == sent and bus["per_group"]["a"]["messages"] == 1
     for token in tokens:
         token.undeclare()

@@ -6,9 +6,9 @@ and everything else is denied:
 
 - agent ``<a>`` may put its own messages (``agent/<a>/<topic>``), serve its own images
   (``agent/<a>/image/*``), hold its own liveliness token (``alive/agent/<a>``), and receive
-  what the server sends it (``server/agent/<a>/*``), the groups' decoders and the server's
-  presence. It cannot put on other agents' keys, on ``server/…`` (acks, updates, control) or
-  query the status;
+  what the server sends it (``server/agent/<a>/*``: acks, updates, its group's decoders) and
+  the server's presence. It cannot put on other agents' keys, on ``server/…`` (acks, updates,
+  control), receive what the server sends another agent or another group, or query the status;
 - the operator may query ``server/status``, put on ``server/control`` (finalise, shutdown)
   and watch the server's presence, nothing else;
 - everyone receives subscriber declarations (key expressions only: Zenoh clients need them
@@ -54,17 +54,16 @@ def _agent_rules(session: str, agent_id: str) -> list[dict[str, Any]]:
     own_topics = [k(keys.agent_topic, agent_id, topic) for topic in keys.AGENT_TOPICS]
     images = k(keys.agent_image_queryable, agent_id)
     to_agent = k(keys.server_agent_all, agent_id)
-    decoders = k(keys.all_group_decoders)
     alive_server = k(keys.alive_servers)
     p = f"agent {agent_id}: "
     return [
         _rule(p + "publish", "ingress", ["put"], own_topics),
         _rule(p + "serve images", "ingress", ["declare_queryable", "reply"], [images]),
         _rule(p + "presence", "ingress", ["liveliness_token"], [k(keys.alive_agent, agent_id)]),
-        _rule(p + "subscribe", "ingress", ["declare_subscriber"], [to_agent, decoders]),
+        _rule(p + "subscribe", "ingress", ["declare_subscriber"], [to_agent]),
         _rule(p + "watch server", "ingress",
               ["declare_liveliness_subscriber", "liveliness_query"], [alive_server]),
-        _rule(p + "receive", "egress", ["put"], [to_agent, decoders]),
+        _rule(p + "receive", "egress", ["put"], [to_agent]),
         _rule(p + "image queries", "egress", ["query"], [images]),
     ]
 

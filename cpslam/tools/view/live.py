@@ -104,8 +104,10 @@ class Observer:
         for topic in ("keyframe", "submap", "frames"):
             self._handles.append(self.bus.subscribe(keys.all_agents_topic(s, topic),
                                                     self._on_sample, queue_size=QUEUE_SIZE))
-        self._handles.append(self.bus.subscribe(keys.all_server_agent(s), self._on_sample,
-                                                queue_size=QUEUE_SIZE))
+        # Not the members' copies of the group decoders: the group key carries each once.
+        for topic in ("update", "ack"):
+            self._handles.append(self.bus.subscribe(keys.all_server_agent_topic(s, topic),
+                                                    self._on_sample, queue_size=QUEUE_SIZE))
         self._handles.append(self.bus.subscribe(keys.all_group_decoders(s), self._on_sample))
         self._handles.append(self.bus.watch_liveliness(
             keys.alive_all(s), on_join=lambda k: self._presence(k, "joined"),
