@@ -14,7 +14,9 @@
 #   paper  7-Scenes kitchen, 640x480        100 frames  140 s
 #   paper  synthetic room loop, 320x240      60 frames  100 s
 #   cpu    7-Scenes kitchen, 320x240        100 frames   50 s
-# each its own bench/odometry.py process (--device cuda, one torch thread count, run.seed 0).
+# each its own bench/odometry.py process (--device cuda, one torch thread count, run.seed 0,
+# --loops off: the front end the table times; the loop closure's back end needs gtsam and
+# zstandard, which the GPU machine's image lacks).
 #
 # Usage: bench/gpu_check.sh [KITCHEN_DIR]
 # Environment: CPSLAM_GPU_KITCHEN (default .gpudata/7scenes-kitchen), CPSLAM_GPU_SYNTH
@@ -52,31 +54,9 @@ echo "== gpu_check: device $DEVICE, budget ${BUDGET_S} s, kitchen $KITCHEN, whee
 command -v nvidia-smi >/dev/null && nvidia-smi --query-gpu=name,memory.total,driver_version \
   --format=csv,noheader
 
-# (a) What the image lacks, from the wheels; cpslam itself from this checkout, laid out as
-# its package-dir mapping says (no build: setuptools may be too old and nothing downloads).
-if compgen -G "$WHEELS/*.whl" >/dev/null; then
-  "$PY" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
-    --target "$SITE/lib" "$WHEELS"/*.whl || { echo "gpu_check: wheel install failed"; exit 1; }
-else
-  echo "gpu_check: no wheels in $WHEELS; using what $PY has"
-fi
-"$PY" - "$REPO" "$SITE/src" <<'EOF' || exit 1
-import sys
-import tomllib
-from pathlib import Path
-
-repo, dest = Path(sys.argv[1]), Path(sys.argv[2])
-mapping = tomllib.loads((repo / "pyproject.toml").read_text())["tool"]["setuptools"]
-mapping = mapping["package-dir"]
-root = dest / "cpslam"
-root.mkdir(parents=True)
-for entry in (repo / mapping["cpslam"]).iterdir():
-    (root / entry.name).symlink_to(entry)
-for package, folder in mapping.items():
-    if package != "cpslam":
-        root.joinpath(*package.split(".")[1:]).symlink_to(repo / folder)
-EOF
-export PYTHONPATH="$SITE/src:$SITE/lib${PYTHONPATH:+:$PYTHONPATH}"
+# (a) What the image lacks, from the wheels; cpslam itself from this checkout (gpu_env.sh).
+# shellcheck source=bench/gpu_env.sh
+source bench/gpu_env.sh || exit 1
 "$PY" -P - "$DEVICE" <<'EOF' || { echo "gpu_check: the environment is not usable"; exit 1; }
 import sys
 
@@ -129,7 +109,7 @@ run_one() {
   fi
   echo "== $preset / $only: up to $frames frames, ${secs} s (hard limit ${left} s)"
   timeout --kill-after=5 "$left" "$PY" bench/odometry.py --preset "$preset" --only "$only" \
-    --frames "$frames" --scenes 1 --threads "$THREADS" --jobs 1 --device "$DEVICE" \
+    --frames "$frames" --scenes 1 --threads "$THREADS" --jobs 1 --device "$DEVICE" --loops off \
     "${DATA_ARGS[@]}" --max-seconds "$secs" --set "${OVERRIDES[@]}" --json "$file.tmp" \
     > "$RESULTS/$preset-$only.out"
   local rc=$?

@@ -109,8 +109,11 @@ def main() -> None:
               f"cores, torch {machine.get('torch')}")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"machine": machine, "paper_rtx3090": PAPER,
-                                         "table": table, "reports": reports}, indent=2) + "\n")
+        first = next((r for r in reports if "commit" in r), {})
+        args.json.write_text(json.dumps({
+            "bench": "gpu_check", "command": "bash bench/gpu_check.sh",
+            "commit": first.get("commit"), "dirty": first.get("dirty"), "machine": machine,
+            "paper_rtx3090": PAPER, "table": table, "reports": reports}, indent=2) + "\n")
         print(f"wrote {args.json}")
 
 

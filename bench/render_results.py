@@ -384,10 +384,43 @@ def _faults(report: dict) -> str:
             + _table(rows) + seeds + "\n")
 
 
+def _gpu_check(report: dict) -> str:
+    cols = ("preset", "sequence", "frames", "size", "track s/f", "map s/call", "map s/iter",
+            "first map s", "e2e s/f after 1st", "GPU alloc GiB", "GPU reserved GiB", "ATE cm",
+            "status")
+    rows = [cols] + [tuple("-" if r.get(c) is None else r[c] for c in cols)
+                     for r in report["table"]]
+    note = f"\n\n{report['note']}" if report.get("note") else ""
+    return ("The odometry front end (`bench/odometry.py --loops off`, one run per preset and "
+            "sequence, each within its own time budget: frames done of those asked) on CUDA, "
+            "beside the CP-SLAM paper's RTX 3090 figures (docs/gpu.md)." + note + "\n\n"
+            + _table(rows) + "\n")
+
+
+def _gpu_profile(report: dict) -> str:
+    waits = report["host_waits_per_frame"]
+    head = (f"`{report['preset']}` on {report['device']}, frames 1..{report['frames'] - 1} "
+            f"profiled (overrides {', '.join(report['overrides']) or 'none'}): "
+            f"{report['wall_s_per_frame']:.2f} s wall per frame, "
+            f"{report['lm_iters_per_frame']:.0f} LM iterations, "
+            f"{report['host_ms_per_frame']:.0f} ms host and "
+            f"{report['device_ms_per_frame']:.0f} ms device time (self, all operators), "
+            f"{report['kernel_launches_per_frame']:.0f} kernel launches, host waits "
+            + ", ".join(f"`{k}` {v:.0f}" for k, v in waits.items()) + " per frame.")
+    note = f" {report['note']}" if report.get("note") else ""
+    rows = [("operator (top 10 by device time)", "calls / frame", "host ms / frame",
+             "device ms / frame")]
+    rows += [(r["op"][:70], round(r["calls_per_frame"], 1),
+              round(r["self_host_ms_per_frame"], 2), round(r["self_device_ms_per_frame"], 2))
+             for r in report["by_device_time"][:10]]
+    return head + note + "\n\n" + _table(rows) + "\n"
+
+
 RENDERERS = {"odometry": _odometry, "loop_edges": _loop_edges, "collab": _collab,
              "rerun_overhead": _rerun_overhead, "persist": _persist, "flood": _flood,
              "transport": _transport, "bandwidth": _bandwidth, "scale": _scale,
-             "faults": _faults}
+             "faults": _faults, "gpu_check": _gpu_check,
+             "gpu_profile": _gpu_profile}
 
 
 if __name__ == "__main__":
