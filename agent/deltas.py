@@ -124,12 +124,16 @@ class DecoderBase:
 
     def fields(self, group_id: str, weights: dict[str, np.ndarray]) -> dict[str, Any]:
         """`DecoderWeights` fields for `weights`: an int8 delta against `group_id`'s loaded
-        decoder, else against the own weights the server holds, else the full weights."""
+        decoder, else against the own weights the server holds, else the full weights. No
+        own delta while an earlier message is unacknowledged: the server keeps only the
+        newest own weights it took, so by the time it reads this one it may hold that
+        message's weights instead of the acknowledged ones."""
         weights = {k: np.asarray(v, np.float32) for k, v in weights.items()}
         if self.group_id == group_id and self.round >= 1 and _fits(self.tensors, weights):
             return {"base_round": self.round, **_delta(weights, self.tensors)}
         if (
             self.own_seq is not None
+            and self._sent is None
             and self._chain % self.full_every != 0
             and _fits(self.own, weights)
         ):

@@ -361,6 +361,29 @@ def test_own_decoder_chain_follows_acks_and_goes_full_every_n():
     assert reg.agents["a"].decoder_seq == 6
 
 
+def test_no_own_delta_while_an_earlier_decoder_message_is_unacknowledged():
+    """Two decoder messages before the first one's ack: the server takes the first and keeps
+    only its weights, so the second must not be a delta against the older acknowledged ones
+    (it would be dropped); it goes full, and deltas resume once the acks catch up."""
+    agent, reg = DecoderBase(full_every=100), Registry(4)
+    w = _weights(1)
+    msgs = []
+    for seq in range(4):
+        w = {k: v + 0.01 * (seq + 1) for k, v in w.items()}
+        fields = agent.fields("a", w)
+        msgs.append(P.DecoderWeights(agent_id="a", seq=seq, group_id="a", round=0,
+                                     n_samples=1, **fields))
+        agent.sent(seq, fields)
+        reg.handle(P.decode(P.encode(msgs[-1])))
+        if seq != 1:  # the ack of seq 1 comes late, after seq 2 was sent
+            agent.acked(seq)
+    kinds = ["full" if m.tensors is not None else m.base_seq for m in msgs]
+    assert kinds == ["full", 0, "full", 2]
+    assert not reg.dropped
+    assert reg.agents["a"].decoder_seq == 3
+    np.testing.assert_array_equal(reg.agents["a"].decoder["l0.weight"], agent.own["l0.weight"])
+
+
 def test_agent_reports_bytes_per_sensor_second_per_key():
     from types import SimpleNamespace
 
