@@ -15,6 +15,8 @@ from cpslam.common.cli import interruptible
 
 
 def test_value_and_error_come_back_to_the_caller() -> None:
+    # Whatever the caller had (a shell that starts a job in the background ignores SIGINT).
+    before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
     threads: list[str] = []
 
     def work() -> int:
@@ -30,7 +32,7 @@ def test_value_and_error_come_back_to_the_caller() -> None:
     with pytest.raises(ValueError, match="bad run folder"):
         interruptible(broken, "the report")
     # The handlers the caller had are back.
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
 
 
 def test_off_the_main_thread_it_just_runs() -> None:
