@@ -9,7 +9,7 @@ synchronised with the device. Tells a launch-bound step (host time per frame clo
 wall time, many small kernels, waits on ``aten::item`` / ``aten::_local_scalar_dense``) from
 a compute-bound one (device time close to the wall time).
 
-Usage: python bench/gpu_profile.py [--preset paper] [--frames 6] [--data PATH]
+Usage: python bench/gpu_profile.py [--preset paper] [--frames 6] [--data PATH | --synthetic SEED]
        [--device cuda] [--set a.b=v ...] [--json PATH]
 Example (the device tool, after bench/gpu_prepare.sh; see docs/gpu.md):
     python bench/gpu_profile.py --data .gpudata/7scenes-kitchen --set mapping.iters_first=100
@@ -26,6 +26,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from benchinfo import bench_header  # noqa: E402
 from odometry_runs import KITCHEN  # noqa: E402
+from stage_profile import open_frames  # noqa: E402
 
 WAITS = ("aten::item", "aten::_local_scalar_dense", "cudaStreamSynchronize",
          "cudaDeviceSynchronize", "cudaMemcpyAsync")
@@ -36,6 +37,8 @@ def main() -> None:
     parser.add_argument("--preset", default="paper")
     parser.add_argument("--frames", type=int, default=6, help="frames (the first unprofiled)")
     parser.add_argument("--data", type=Path, default=KITCHEN, help="sequence folder")
+    parser.add_argument("--synthetic", type=int, default=None, metavar="SEED",
+                        help="a synthetic scene (bench/odometry_runs.py) instead of --data")
     parser.add_argument("--device", default="cuda")
     parser.add_argument("--threads", type=int, default=8, help="torch CPU threads")
     parser.add_argument("--set", nargs="*", default=[], help="config overrides a.b=value")
@@ -46,25 +49,16 @@ def main() -> None:
     from torch.profiler import ProfilerActivity, profile
 
     from cpslam.agent.odometry import Odometry
-    from cpslam.common.camera import resize_rgbd
     from cpslam.common.config import load_config
-    from cpslam.common.datasets import open_sequence
     from cpslam.common.device import configure_torch
 
     cfg = load_config(args.preset, overrides=[f"run.num_threads={args.threads}", *args.set],
                       env={})
     configure_torch(cfg.run.num_threads, cfg.run.deterministic, 1)
-    seq = open_sequence(str(args.data), frames=slice(0, args.frames))
-    factor = cfg.camera.downscale
-    frames = []
-    for i in range(len(seq)):
-        frame = seq[i]
-        if factor != 1.0:
-            frame.rgb, frame.depth = resize_rgbd(frame.rgb, frame.depth, factor)
-        frames.append(frame)
+    _, intrinsics, frames = open_frames(args, cfg)
     cuda = args.device.startswith("cuda")
     sync = torch.cuda.synchronize if cuda else (lambda: None)
-    odometry = Odometry.from_config(cfg, seq.intrinsics.scaled(factor), args.device)
+    odometry = Odometry.from_config(cfg, intrinsics, args.device)
     t0 = time.perf_counter()
     odometry.step(frames[0])
     sync()
