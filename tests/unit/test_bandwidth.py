@@ -331,6 +331,14 @@ def test_bytes_per_sensor_second_per_key_and_agent():
     )
 
 
+def _send_decoder(agent: DecoderBase, seq: int, w: dict) -> P.DecoderWeights:
+    """Agent "a"'s decoder message of `seq` for weights `w`, as its link would make it."""
+    fields = agent.fields("a", w)
+    msg = P.DecoderWeights(agent_id="a", seq=seq, group_id="a", round=0, n_samples=1, **fields)
+    agent.sent(seq, fields)
+    return msg
+
+
 def test_own_decoder_chain_follows_acks_and_goes_full_every_n():
     """Before any shared decoder the deltas refer to the agent's own acknowledged weights;
     the server rebuilds them bit for bit as the agent predicts, refuses a chain it lost, and
@@ -340,9 +348,7 @@ def test_own_decoder_chain_follows_acks_and_goes_full_every_n():
     sent = []
     for seq in range(7):
         w = {k: v + 0.01 * (seq + 1) for k, v in w.items()}
-        fields = agent.fields("a", w)
-        msg = P.DecoderWeights(agent_id="a", seq=seq, group_id="a", round=0, n_samples=1, **fields)
-        agent.sent(seq, fields)
+        msg = _send_decoder(agent, seq, w)
         sent.append(msg)
         if seq == 4:  # the server restarts from a state without the chain
             state = reg.state_dict()
@@ -370,10 +376,7 @@ def test_no_own_delta_while_an_earlier_decoder_message_is_unacknowledged():
     msgs = []
     for seq in range(4):
         w = {k: v + 0.01 * (seq + 1) for k, v in w.items()}
-        fields = agent.fields("a", w)
-        msgs.append(P.DecoderWeights(agent_id="a", seq=seq, group_id="a", round=0,
-                                     n_samples=1, **fields))
-        agent.sent(seq, fields)
+        msgs.append(_send_decoder(agent, seq, w))
         reg.handle(P.decode(P.encode(msgs[-1])))
         if seq != 1:  # the ack of seq 1 comes late, after seq 2 was sent
             agent.acked(seq)
