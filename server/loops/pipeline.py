@@ -169,14 +169,14 @@ class LoopPipeline:
         done = self.worker.drain() if wait else self.worker.finished()
         return [r for r in map(self.conclude, done) if r is not None]
 
-    def stop_worker(self) -> list[LoopRecord]:
-        """Finish the candidate in hand, stop the thread, verify inline from now on."""
+    def stop_worker(self) -> None:
+        """Finish (and record) the candidate in hand, stop the thread, verify inline from
+        now on."""
         if self.worker is None:
-            return []
-        records = self.collect(wait=True)
+            return
+        self.collect(wait=True)
         self.worker.close()
         self.worker = None
-        return records
 
     def pending(self) -> list[Candidate]:
         """Candidates waiting: queued, then with the worker."""

@@ -15,9 +15,11 @@ import logging
 import threading
 from typing import TYPE_CHECKING
 
+from cpslam.server.loops.pipeline import Assessment
+
 if TYPE_CHECKING:
     from cpslam.server.loops.candidates import Candidate
-    from cpslam.server.loops.pipeline import Assessment, LoopPipeline
+    from cpslam.server.loops.pipeline import LoopPipeline
 
 __all__ = ["VerifyWorker"]
 
@@ -99,8 +101,6 @@ class VerifyWorker:
             except BaseException:  # noqa: BLE001 - assess catches its own; this is a bug
                 logger.exception("loop verification worker failed on %s/%d - %s/%d",
                                  cand.agent_a, cand.kf_a, cand.agent_b, cand.kf_b)
-                from cpslam.server.loops.pipeline import Assessment
-
                 done = Assessment(cand, None, "verification worker error", False, 0.0)
             with self._cond:
                 self._done.append(done)
