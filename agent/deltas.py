@@ -8,7 +8,8 @@ local value, means slow drift below the threshold still gets sent once it adds u
 
 `DecoderBase` remembers the group decoder the agent last loaded (the last agreed weights of
 its group) and, while there is none, the weights the server holds from the agent's last
-acknowledged `DecoderWeights`; it turns local weights into an int8 delta against one of them.
+acknowledged `DecoderWeights`; it turns local weights into an int8 delta against one of them,
+or, with neither, sends them whole at float16 (float32 where a weight is beyond float16's range).
 Every ``full_every``-th message of the agent's own chain goes full, so a server that lost the
 chain (a restart) is back in step within that many rounds.
 """
@@ -24,6 +25,7 @@ from cpslam.protocol.quant import add_delta, dequantise_rows, quantise_rows
 __all__ = ["DecoderBase", "SubmapMirror", "encode_features"]
 
 FeatureCodec = Literal["float16", "int8"]
+_F16_MAX = float(np.finfo(np.float16).max)
 
 
 def encode_features(features: np.ndarray, codec: FeatureCodec) -> tuple[dict[str, Any], np.ndarray]:
@@ -124,7 +126,8 @@ class DecoderBase:
 
     def fields(self, group_id: str, weights: dict[str, np.ndarray]) -> dict[str, Any]:
         """`DecoderWeights` fields for `weights`: an int8 delta against `group_id`'s loaded
-        decoder, else against the own weights the server holds, else the full weights. No
+        decoder, else against the own weights the server holds, else the full weights (float16
+        when every one fits, which the server's copy then is). No
         own delta while an earlier message is unacknowledged: the server keeps only the
         newest own weights it took, so by the time it reads this one it may hold that
         message's weights instead of the acknowledged ones."""
@@ -138,13 +141,16 @@ class DecoderBase:
             and _fits(self.own, weights)
         ):
             return {"base_seq": self.own_seq, **_delta(weights, self.own)}
+        if all(np.abs(v).max(initial=0.0) <= _F16_MAX for v in weights.values()):
+            return {"tensors_f16": {k: v.astype(np.float16) for k, v in weights.items()}}
         return {"tensors": weights}
 
     def sent(self, seq: int, fields: dict[str, Any]) -> None:
         """The message of `seq` carried `fields` (its weights become the own base once
         acknowledged)."""
-        if "tensors" in fields:
-            held = fields["tensors"]
+        if "tensors" in fields or "tensors_f16" in fields:
+            full = fields.get("tensors", fields.get("tensors_f16"))
+            held = {k: np.asarray(v, np.float32) for k, v in full.items()}
         else:  # what the server rebuilds: the base plus the dequantised delta
             base = self.tensors if "base_round" in fields else self.own
             held = add_delta(

@@ -3,18 +3,21 @@
     python bench/bandwidth.py                          # the demo's scene: 2 agents x 100 frames
     python bench/bandwidth.py --frames 0:150:3 --preset tiny          # a quick look
     python bench/bandwidth.py --variants before after no-decoder-delta
+    python bench/bandwidth.py --variants after coalesce2 --scene room --scene-seed 7
 
 The demo's setup run in-process (`cpslam run`'s lock-step loop on the in-memory bus, the same
 nodes and codec as over Zenoh): `cpslam dataset synth --scene apartment --agents 2
 --num-frames 300` (320x240, cached under runs/bench-data/), every third frame, keyframes every
-10 processed frames. Variants (the `link` section, docs/configuration.md):
+10 processed frames (`--scene`, `--scene-seed`: another synthetic scene, for data the
+defaults were not tuned on). Variants (the `link` section, docs/configuration.md):
 
 - before: every mapping call a delta of every point whose float16 features changed, full
-  float32 decoders, no compression (the wire format before the link section);
+  float32 decoders, no compression (the wire format before the link section, but for the
+  float16 keyframe descriptors of protocol 4);
 - after: the link section's defaults (coalesced deltas, relative change threshold, int8
   features, int8 decoder deltas, zstd);
 - no-decoder-delta: after with full float32 decoders (the ATE with and without decoder deltas);
-- coalesce4: after with a sub-map delta every 4 mapping calls instead of 2.
+- coalesce2: after with a sub-map delta every 2 mapping calls instead of 4.
 
 Per variant and agent: bytes per second of sensor time per message type (the server's
 counters in metrics.json), the joint se3 ATE of both global trajectories, the merge time, and
@@ -47,7 +50,7 @@ VARIANTS = {
     ],
     "after": [],
     "no-decoder-delta": ["link.decoder_delta=false"],
-    "coalesce4": ["link.submap_every_mappings=4"],
+    "coalesce2": ["link.submap_every_mappings=2"],
 }
 
 
@@ -65,6 +68,8 @@ def main() -> None:
         help="keyframes per agent rendered for the server-copy comparison",
     )
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--scene", default="apartment", choices=["apartment", "room"])
+    parser.add_argument("--scene-seed", type=int, default=0, help="seed of the generated scene")
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "bandwidth.json")
     args = parser.parse_args()
     logging.basicConfig(level=logging.WARNING)
@@ -74,12 +79,15 @@ def main() -> None:
         **bench_header("bandwidth", sys.argv),
         "preset": args.preset,
         "frames": args.frames,
+        "scene": args.scene,
+        "scene_seed": args.scene_seed,
         "variants": {},
     }
     for name in args.variants:
         t0 = time.perf_counter()
         report["variants"][name] = run_variant(
-            args.preset, args.frames, VARIANTS[name], args.seed, args.render_views
+            args.preset, args.frames, VARIANTS[name], args.seed, args.render_views,
+            args.scene, args.scene_seed,
         )
         report["variants"][name]["wall_s"] = round(time.perf_counter() - t0, 1)
         print(f"{name}: {json.dumps(report['variants'][name]['summary'])}", flush=True)
@@ -101,7 +109,8 @@ def main() -> None:
     print(f"wrote {args.out}")
 
 
-def run_variant(preset: str, frames: str, sets: list[str], seed: int, views: int) -> dict:
+def run_variant(preset: str, frames: str, sets: list[str], seed: int, views: int,
+                scene: str = "apartment", scene_seed: int = 0) -> dict:
     import tempfile
 
     from cpslam.agent.standalone import open_for_config
@@ -110,7 +119,7 @@ def run_variant(preset: str, frames: str, sets: list[str], seed: int, views: int
     from cpslam.run import run_collab
 
     paths = scene_data(
-        ROOT / "runs" / "bench-data", "apartment", 2, 300, 320, 240, 0, show_progress=False
+        ROOT / "runs" / "bench-data", scene, 2, 300, 320, 240, scene_seed, show_progress=False
     )
     cfg = load_config(preset, overrides=["keyframes.every=10", f"run.seed={seed}", *sets], env={})
     seqs = [open_for_config(cfg, p, frames=frames) for p in paths]

@@ -258,8 +258,10 @@ def _bandwidth(report: dict) -> str:
     if ratio:
         note = (f"\nAfter / before: bytes per sensor-second x{ratio['bytes_per_sensor_s']}, "
                 f"joint ATE x{ratio['joint_ate']}.\n")
+    scene = report.get("scene", "apartment")
+    scene += f" (scene seed {report['scene_seed']})" if report.get("scene_seed") else ""
     return (f"Preset `{report['preset']}`, frames `{report['frames']}` of each agent's "
-            "300-frame apartment walk; bytes the server received per second of each agent's "
+            f"300-frame {scene} walk; bytes the server received per second of each agent's "
             "sensor time (kB per sensor-second), in all and by message type. *server copy*: "
             "the agent's final map rendered at its keyframes with the features the server "
             "holds against its own.\n\n"

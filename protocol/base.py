@@ -19,16 +19,18 @@ __all__ = [
     "Pose",
     "Poses",
     "Tensors",
+    "Float16Tensors",
     "Int8Tensors",
     "Scales",
     "Message",
     "WireModel",
 ]
 
-PROTOCOL_VERSION = 3
+PROTOCOL_VERSION = 4
 """Version every message carries; a decoder rejects any other. 2: zstd-framed payloads,
 int8 sub-map features, decoder weights as deltas against a group round. 3: a group's decoder
-goes to each member on its own key (``server/agent/<a>/group_decoder``)."""
+goes to each member on its own key (``server/agent/<a>/group_decoder``). 4: keyframe
+descriptors travel as float16, decoder weights may travel as float16 (``tensors_f16``)."""
 
 Id = Annotated[str, AfterValidator(lambda v: check_id(v, "id"))]
 """Agent, group or session id: 1-64 chars of [A-Za-z0-9_-] (usable as a key chunk)."""
@@ -47,6 +49,11 @@ Tensors = Annotated[
     Field(min_length=1, max_length=MAX_TENSORS),
 ]
 """Named float32 tensors (a torch state_dict flattened to numpy), at most 256 names."""
+Float16Tensors = Annotated[
+    dict[TensorName, Annotated[np.ndarray, ArraySpec("float16", None, finite=True)]],
+    Field(min_length=1, max_length=MAX_TENSORS),
+]
+"""Named float16 tensors (parameters rounded to half precision)."""
 Int8Tensors = Annotated[
     dict[TensorName, Annotated[np.ndarray, ArraySpec("int8", None)]],
     Field(min_length=1, max_length=MAX_TENSORS),

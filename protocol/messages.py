@@ -16,6 +16,7 @@ from cpslam.protocol.arrays import ArraySpec
 from cpslam.protocol.base import (
     Count,
     Id,
+    Float16Tensors,
     Int8Tensors,
     KfId,
     Message,
@@ -76,8 +77,9 @@ class KeyframeMsg(Message):
     """Camera-to-world pose in the agent's current world frame (float64 [4, 4], m)."""
     T_prev_kf_kf: Pose | None = None
     """Pose of this keyframe in the previous keyframe's camera frame; None for the first."""
-    descriptor: Annotated[np.ndarray, ArraySpec("float32", ("D",), finite=True)]
-    """Global image descriptor, unit L2 norm (float32 [D], 1 <= D <= 65536)."""
+    descriptor: Annotated[np.ndarray, ArraySpec("float16", ("D",), finite=True)]
+    """Global image descriptor, unit L2 norm (float16 [D], 1 <= D <= 65536; cosines between
+    descriptors move by about 1e-3 at half precision, far below the loop thresholds)."""
     n_points: Count = 0
     """Number of map points anchored to this keyframe when it was published."""
 
@@ -208,8 +210,8 @@ class DecoderWeights(Message):
     round (group_id's `GroupDecoder`), which the agent had loaded; with `base_seq` the
     difference to the weights the server holds from this agent's acknowledged
     `DecoderWeights` of that seq (while no shared decoder exists); without either, the
-    weights themselves. They travel as float32 (`tensors`) or as int8 with one scale per row
-    (`tensors_int8`, `tensor_scales`); `values` gives float32 either way.
+    weights themselves. They travel as float32 (`tensors`), float16 (`tensors_f16`) or as int8
+    with one scale per row (`tensors_int8`, `tensor_scales`); `values` gives float32 each way.
     """
 
     max_bytes = 16 * MB
@@ -233,6 +235,8 @@ class DecoderWeights(Message):
     weights the server holds from it); None: not that. At most one of base_round, base_seq."""
     tensors: Tensors | None = None
     """Parameters (or deltas) by name (torch state_dict keys), each float32 of any shape."""
+    tensors_f16: Float16Tensors | None = None
+    """The same rounded to float16."""
     tensors_int8: Int8Tensors | None = None
     """The same quantised: int8 of any shape, row i (axis 0) times tensor_scales[name][i]."""
     tensor_scales: Scales | None = None
@@ -240,8 +244,9 @@ class DecoderWeights(Message):
 
     @model_validator(mode="after")
     def _check(self) -> DecoderWeights:
-        if (self.tensors is None) == (self.tensors_int8 is None):
-            raise ValueError("tensors/tensors_int8: exactly one must be given")
+        forms = (self.tensors, self.tensors_f16, self.tensors_int8)
+        if sum(form is not None for form in forms) != 1:
+            raise ValueError("tensors/tensors_f16/tensors_int8: exactly one must be given")
         if (self.tensors_int8 is None) != (self.tensor_scales is None):
             raise ValueError("tensor_scales: required with tensors_int8, and only with it")
         if self.tensors_int8 is not None:
@@ -265,8 +270,9 @@ class DecoderWeights(Message):
 
     def values(self) -> dict[str, np.ndarray]:
         """The tensors (or deltas) as float32 by name, dequantised when sent as int8."""
-        if self.tensors is not None:
-            return {k: np.asarray(v, np.float32) for k, v in self.tensors.items()}
+        for plain in (self.tensors, self.tensors_f16):
+            if plain is not None:
+                return {k: np.asarray(v, np.float32) for k, v in plain.items()}
         return {k: dequantise_rows(q, self.tensor_scales[k])
                 for k, q in self.tensors_int8.items()}
 

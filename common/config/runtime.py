@@ -127,7 +127,7 @@ class TransportConfig(Section):
 class LinkConfig(Section):
     """What an agent sends the server and how compactly (docs/protocol.md, wire-size budget)."""
 
-    submap_every_mappings: PositiveInt = 2
+    submap_every_mappings: PositiveInt = 4
     """Send a sub-map delta every this many mapping calls (the first call's at once)."""
     feature_threshold: NonNegativeFloat = 0.1
     """Resend a known point when a feature moved by this fraction of its largest (0: any)."""

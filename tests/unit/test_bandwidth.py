@@ -152,11 +152,11 @@ def test_decoder_delta_agent_to_server_round_trip():
         for k, v in group.items()
     }
     agent = DecoderBase()
-    assert "tensors" in agent.fields("g", local)  # no base yet: full weights
+    assert "tensors_f16" in agent.fields("g", local)  # no base yet: full weights
     agent.set("g", 3, group)
     fields = agent.fields("g", local)
-    assert fields["base_round"] == 3 and "tensors" not in fields
-    assert "tensors" in agent.fields("other", local)  # base of another group
+    assert fields["base_round"] == 3 and "tensors_f16" not in fields
+    assert "tensors_f16" in agent.fields("other", local)  # base of another group
     msg = P.decode(
         P.encode(
             P.DecoderWeights(agent_id="a", seq=0, group_id="g", round=3, n_samples=5, **fields)
@@ -188,6 +188,26 @@ def test_decoder_delta_agent_to_server_round_trip():
         )
         / 3
     )
+
+
+def test_full_decoder_weights_travel_as_float16_and_the_own_base_is_what_arrived():
+    local = _weights(4)
+    agent = DecoderBase(full_every=10)
+    fields = agent.fields("a", local)
+    msg = P.decode(P.encode(P.DecoderWeights(agent_id="a", seq=0, group_id="a", round=0,
+                                             n_samples=5, **fields)))
+    assert msg.tensors is None and msg.tensors_f16 is not None
+    for name, value in msg.values().items():
+        assert value.dtype == np.float32
+        np.testing.assert_allclose(value, local[name], rtol=2**-11, atol=1e-7)
+    agent.sent(0, fields)
+    agent.acked(0)
+    # the own base is the float16 copy the server holds, so a later delta rebuilds exactly
+    for name, value in msg.values().items():
+        np.testing.assert_array_equal(agent.own[name], value)
+    # a weight beyond float16's range goes whole at float32 rather than as infinity
+    huge = {**local, "gain": np.float32(1e6).reshape(())}
+    assert "tensors" in DecoderBase().fields("a", huge)
 
 
 def test_registry_applies_decoder_deltas_and_drops_an_unknown_base():
@@ -361,7 +381,7 @@ def test_own_decoder_chain_follows_acks_and_goes_full_every_n():
             np.testing.assert_array_equal(
                 reg.agents["a"].decoder["l0.weight"], agent.own["l0.weight"]
             )
-    kinds = ["full" if m.tensors is not None else m.base_seq for m in sent]
+    kinds = ["full" if m.tensors_f16 is not None else m.base_seq for m in sent]
     assert kinds == ["full", 0, 1, "full", 3, 4, "full"]
     assert sum("the server holds its weights of seq -1" in r for r in reg.dropped) == 2
     assert reg.agents["a"].decoder_seq == 6
@@ -380,7 +400,7 @@ def test_no_own_delta_while_an_earlier_decoder_message_is_unacknowledged():
         reg.handle(P.decode(P.encode(msgs[-1])))
         if seq != 1:  # the ack of seq 1 comes late, after seq 2 was sent
             agent.acked(seq)
-    kinds = ["full" if m.tensors is not None else m.base_seq for m in msgs]
+    kinds = ["full" if m.tensors_f16 is not None else m.base_seq for m in msgs]
     assert kinds == ["full", 0, "full", 2]
     assert not reg.dropped
     assert reg.agents["a"].decoder_seq == 3

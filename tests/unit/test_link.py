@@ -365,13 +365,13 @@ def test_submap_deltas_coalesce_mapping_calls_and_travel_as_int8() -> None:
 def test_decoder_weights_are_int8_deltas_against_the_loaded_group_decoder() -> None:
     link = _link(rounds=1, decoder_delta=True)
     first = [m for m in _run(link, 0, 1) if isinstance(m, DecoderWeights)][0]
-    assert first.base_round is None and first.tensors is not None  # nothing agreed yet
+    assert first.base_round is None and first.tensors_f16 is not None  # nothing agreed yet
     dec = link.odometry.decoders
     base = {k: v.detach().numpy().copy() + 0.01 for k, v in dec.state_dict().items()}
     assert link.apply_decoder(GroupDecoder(group_id="a0", round=2, members=["a0", "b1"],
                                            n_samples=10, tensors=base))
     weights = [m for m in _run(link, 1, 6) if isinstance(m, DecoderWeights)][-1]
-    assert weights.base_round == 2 and weights.tensors is None
+    assert weights.base_round == 2 and weights.tensors_f16 is None
     local = {k: v.detach().numpy() for k, v in dec.state_dict().items()}
     for name, delta in weights.values().items():
         step = np.abs(local[name] - base[name]).max() / 254 + 1e-7
@@ -379,4 +379,4 @@ def test_decoder_weights_are_int8_deltas_against_the_loaded_group_decoder() -> N
     # another group: no agreed base there yet, so full weights again
     link.apply_update(_update(link, 1, np.eye(4), group="g2", members=("a0", "b1"), epoch=1))
     weights = [m for m in _run(link, 6, 11) if isinstance(m, DecoderWeights)][-1]
-    assert weights.group_id == "g2" and weights.base_round is None and weights.tensors
+    assert weights.group_id == "g2" and weights.base_round is None and weights.tensors_f16

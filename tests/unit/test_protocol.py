@@ -55,7 +55,7 @@ def test_round_trip_every_type(msg):
         data = decompress(data, P.max_bytes(msg.type_name()))
     wire = msgpack.unpackb(data, raw=False)
     assert list(wire)[:2] == ["type", "version"]
-    assert wire["version"] == P.PROTOCOL_VERSION == 3
+    assert wire["version"] == P.PROTOCOL_VERSION == 4
 
 
 def test_decoded_arrays_are_writable_native_copies():
@@ -121,16 +121,17 @@ def test_structural_errors(payload, needle):
 
 
 @pytest.mark.parametrize("zstd_level", [0, 3])
-def test_old_version_is_refused_by_name(zstd_level):
-    wire = _wire(sample("submap_delta", n_points=200))
-    wire["version"] = 1  # the float16-only protocol before compression
+@pytest.mark.parametrize(("msg_type", "old"), [("submap_delta", 1), ("keyframe", 3)])
+def test_old_version_is_refused_by_name(zstd_level, msg_type, old):
+    wire = _wire(sample(msg_type))
+    wire["version"] = old  # 1: float16 features before compression; 3: float32 descriptors
     payload = _pack(wire)
     if zstd_level:
         payload = compress(payload, zstd_level)
-    with pytest.raises(P.ProtocolError,
-                       match="version 1, this build speaks version 3 only") as info:
+    with pytest.raises(P.ProtocolError, match=f"version {old}, this build speaks version "
+                                              f"{P.PROTOCOL_VERSION} only") as info:
         P.decode(payload)
-    assert info.value.msg_type == "submap_delta"
+    assert info.value.msg_type == msg_type
 
 
 def test_wrong_expected_type():
