@@ -15,8 +15,8 @@ from pydantic_core import core_schema
 from cpslam.protocol.arrays import ArraySpec
 from cpslam.protocol.base import (
     Count,
-    Id,
     Float16Tensors,
+    Id,
     Int8Tensors,
     KfId,
     Message,
