@@ -9,7 +9,7 @@ import torch
 
 from cpslam import protocol
 from cpslam.agent.deltas import SubmapMirror
-from cpslam.agent.link import AgentLink
+from cpslam.agent.link import WIRE_DEPTH_SCALE, AgentLink
 from cpslam.agent.odometry import Odometry
 from cpslam.common.camera import Intrinsics
 from cpslam.common.config import load_config
@@ -252,7 +252,9 @@ def test_image_request_answered_from_the_keyframe_store(warm) -> None:
     full = store.intrinsics  # the processed frame's size: registration at full resolution
     assert (reply.width, reply.height, reply.fx) == (full.width, full.height, full.fx)
     rgb, depth = store.full_rgbd(1)
-    np.testing.assert_allclose(reply.depth_metres(), depth, atol=1e-3)
+    # 1 mm steps on the wire: off by half a millimetre at most
+    assert reply.depth_scale == WIRE_DEPTH_SCALE == 1000.0
+    np.testing.assert_allclose(reply.depth_metres(), depth, atol=0.5 / WIRE_DEPTH_SCALE + 1e-6)
     assert rgb.shape == (full.height, full.width, 3)
     protocol.decode(protocol.encode(reply), expected=KeyframeImage)
     missing = link.answer_image(KeyframeImageRequest(agent_id="a0", kf_id=99))
