@@ -90,7 +90,9 @@ def _grow(folder: Path, mode: str, args: argparse.Namespace) -> list[dict]:
         persist_every_s=0.0,
         persist_background=mode == "thread",
     ).start()
-    feature_dim = cfg.field.feature_dim
+    from cpslam.common.place_recognition import descriptor_dim
+
+    feature_dim, args.descriptor_dim = cfg.field.feature_dim, descriptor_dim(cfg.place_recognition)
     key_kf, key_pts = keys.agent_keyframe(SESSION, "a"), keys.agent_submap(SESSION, "a")
     sent = [0, 0]  # next seq, next keyframe id
     rows = []
@@ -99,6 +101,9 @@ def _grow(folder: Path, mode: str, args: argparse.Namespace) -> list[dict]:
         _send(agent_bus, key_kf, key_pts, sent, size - args.polls - sent[1], args, feature_dim)
         node.poll()
         node.persist()
+        held = len(node.backend.registry.agents["a"].keyframes)
+        if held != sent[1]:  # a bench whose messages are dropped measures nothing
+            raise SystemExit(f"the server holds {held} of {sent[1]} keyframes: see its log")
         times = []
         for _ in range(args.polls):
             _send(agent_bus, key_kf, key_pts, sent, 1, args, feature_dim)
@@ -136,7 +141,7 @@ def _send(bus, key_kf: str, key_pts: str, sent: list[int], n: int, args, feature
     rng = np.random.default_rng(sent[1])
     kf_ids = np.arange(sent[1], sent[1] + n)
     for kf in kf_ids:
-        d = rng.standard_normal(64).astype(np.float32)
+        d = rng.standard_normal(args.descriptor_dim).astype(np.float32)
         msg = KeyframeMsg(
             agent_id="a",
             seq=sent[0],

@@ -3,9 +3,14 @@
 A point id can be written by several `SubmapDelta`s; the one with the higher ``seq`` wins even
 when the deltas arrive out of order, and a removal leaves a tombstone so that an older add
 arriving later does not bring the point back.
+
+Columns are replaced, never written in place, and are read-only arrays: a state snapshot
+shares them with the writer thread instead of copying the whole map every time it persists.
 """
 
 from __future__ import annotations
+
+import warnings
 
 import numpy as np
 import torch
@@ -31,6 +36,14 @@ class PointTable:
         self.seq = np.zeros(0, np.int64)
         self.tombstones: dict[int, int] = {}
         """Removed point id -> seq of the removal."""
+
+    def __setattr__(self, name: str, value: object) -> None:
+        if name in _COLUMNS:
+            value = np.array(value, copy=None)
+            if value.base is not None:  # a view: own the data, or its owner could change it
+                value = value.copy()
+            value.flags.writeable = False
+        object.__setattr__(self, name, value)
 
     def __len__(self) -> int:
         return int(self.ids.shape[0])
@@ -146,10 +159,13 @@ class PointTable:
                      np.zeros(0, np.int64))
 
     def state_dict(self) -> dict:
+        """The columns (shared: they are read-only) and the tombstones."""
         # Features stay float16 as in the table (and on the wire): a float32 copy doubled
         # the state the server snapshots and writes (bench/persist.py). States written
         # with float32 features load the same.
-        out = {name: torch.from_numpy(getattr(self, name).copy()) for name in _COLUMNS}
+        with warnings.catch_warnings():  # torch warns of read-only arrays; a snapshot is read
+            warnings.filterwarnings("ignore", "The given NumPy array is not writable")
+            out = {name: torch.from_numpy(getattr(self, name)) for name in _COLUMNS}
         out["tombstones"] = torch.tensor(sorted(self.tombstones.items()),
                                          dtype=torch.int64).reshape(-1, 2)
         return out

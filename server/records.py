@@ -129,12 +129,7 @@ def record_state(rec: AgentRecord) -> dict:
     """Plain data (python, torch tensors) of one record; see `record_from_state`."""
     return {
         "agent_id": rec.agent_id, "index": rec.index,
-        "keyframes": [
-            {"kf_id": k.kf_id, "frame_index": k.frame_index, "stamp": k.stamp,
-             "T_own_kf": _t(k.T_own_kf), "descriptor": _t(k.descriptor),
-             "T_prev_kf_kf": None if k.T_prev_kf_kf is None else _t(k.T_prev_kf_kf)}
-            for k in rec.keyframes.values()
-        ],
+        "keyframes": _keyframes_state(list(rec.keyframes.values())),
         "frames": _frames_state(rec.frames),
         "pending_frames": _frames_state(rec.pending_frames),
         "points": rec.points.state_dict(),
@@ -154,11 +149,8 @@ def record_state(rec: AgentRecord) -> dict:
 def record_from_state(a: dict) -> AgentRecord:
     """The record a `record_state` describes."""
     rec = AgentRecord(a["agent_id"], int(a["index"]))
-    for k in a["keyframes"]:
-        rec.keyframes[int(k["kf_id"])] = KeyframeRecord(
-            int(k["kf_id"]), int(k["frame_index"]), float(k["stamp"]),
-            _n(k["T_own_kf"]), _n(k["descriptor"]),
-            None if k["T_prev_kf_kf"] is None else _n(k["T_prev_kf_kf"]))
+    for k in _keyframes_load(a["keyframes"]):
+        rec.keyframes[k.kf_id] = k
     rec.frames = _frames_load(a["frames"])
     rec.pending_frames = _frames_load(a["pending_frames"])
     rec.points = PointTable.from_state_dict(a["points"])
@@ -185,6 +177,42 @@ def _t(a: np.ndarray) -> torch.Tensor:
 
 def _n(t: torch.Tensor) -> np.ndarray:
     return t.cpu().numpy().copy()
+
+
+def _keyframes_state(kfs: list[KeyframeRecord]) -> dict:
+    # Columns, not a dict per keyframe: a snapshot of thousands of keyframes is a few stacks
+    # instead of thousands of small tensors for the poll loop to make and copy.
+    eye = np.eye(4)
+    return {
+        "kf_id": torch.tensor([k.kf_id for k in kfs], dtype=torch.int64),
+        "frame_index": torch.tensor([k.frame_index for k in kfs], dtype=torch.int64),
+        "stamp": torch.tensor([k.stamp for k in kfs], dtype=torch.float64),
+        "T_own_kf": _stack([k.T_own_kf for k in kfs], (4, 4), np.float64),
+        "descriptor": _stack([k.descriptor for k in kfs], (0,), np.float32),
+        "T_prev_kf_kf": _stack([eye if k.T_prev_kf_kf is None else k.T_prev_kf_kf
+                                for k in kfs], (4, 4), np.float64),
+        "has_prev": torch.tensor([k.T_prev_kf_kf is not None for k in kfs], dtype=torch.bool),
+    }
+
+
+def _keyframes_load(state: dict | list) -> list[KeyframeRecord]:
+    if isinstance(state, list):  # a state written before keyframes were stored as columns
+        return [KeyframeRecord(int(k["kf_id"]), int(k["frame_index"]), float(k["stamp"]),
+                               _n(k["T_own_kf"]), _n(k["descriptor"]),
+                               None if k["T_prev_kf_kf"] is None else _n(k["T_prev_kf_kf"]))
+                for k in state]
+    T, D, prev = _n(state["T_own_kf"]), _n(state["descriptor"]), _n(state["T_prev_kf_kf"])
+    return [KeyframeRecord(int(kf), int(fi), float(st), T[i], D[i],
+                           prev[i] if has else None)
+            for i, (kf, fi, st, has) in enumerate(zip(
+                state["kf_id"].tolist(), state["frame_index"].tolist(),
+                state["stamp"].tolist(), state["has_prev"].tolist(), strict=True))]
+
+
+def _stack(arrays: list[np.ndarray], empty: tuple[int, ...], dtype: type) -> torch.Tensor:
+    if not arrays:
+        return torch.from_numpy(np.zeros((0, *empty), dtype))
+    return torch.from_numpy(np.stack(arrays).astype(dtype, copy=False))
 
 
 def _frames_state(frames: dict[int, tuple[int, np.ndarray, float]]) -> dict:

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
+import torch
 
 from cpslam.common.geometry import compose, se3_exp
 from cpslam.protocol import Ack, DecoderWeights, FramePoses, KeyframeMsg, SubmapDelta
@@ -113,6 +115,44 @@ def test_state_dict_round_trip():
     a, b = reg.agents["a"], other.agents["a"]
     assert b.points.ids.tolist() == a.points.ids.tolist() and len(b.pending_points) == 1
     assert b.seq_floor == 2 and b.keyframes[0].frame_index == 0
+
+
+def test_a_state_snapshot_shares_the_points_and_later_messages_leave_it_as_taken():
+    reg = Registry(F)
+    reg.handle(keyframe(0, 0))
+    reg.handle(delta(1, [0, 1, 2], 0))
+    snap = reg.state_dict()
+    taken = {k: v.clone() for k, v in snap["agents"][0]["points"].items()}
+    table = reg.agents["a"].points
+    assert np.shares_memory(snap["agents"][0]["points"]["xyz"].numpy(), table.xyz)  # no copy
+    with pytest.raises(ValueError, match="read-only"):
+        table.features[0, 0] = 1.0  # columns are replaced, never written in place
+    reg.handle(delta(2, [1, 5], 0))  # replaces point 1, adds 5
+    reg.handle(delta(3, [], 0, removed=[0]))
+    assert table.ids.tolist() == [1, 2, 5]
+    for name, value in snap["agents"][0]["points"].items():
+        assert torch.equal(value, taken[name]), name
+
+
+def test_a_state_with_keyframes_as_a_list_of_dicts_still_loads():
+    reg = Registry(F)
+    reg.handle(keyframe(0, 0))
+    reg.handle(keyframe(1, 1))
+    state = reg.state_dict()
+    columns = state["agents"][0]["keyframes"]
+    state["agents"][0]["keyframes"] = [  # the layout before keyframes were columns
+        {"kf_id": int(columns["kf_id"][i]), "frame_index": int(columns["frame_index"][i]),
+         "stamp": float(columns["stamp"][i]), "T_own_kf": columns["T_own_kf"][i],
+         "descriptor": columns["descriptor"][i],
+         "T_prev_kf_kf": columns["T_prev_kf_kf"][i] if columns["has_prev"][i] else None}
+        for i in range(2)]
+    other = Registry(F)
+    other.load_state_dict(state)
+    for kf in (0, 1):
+        a, b = reg.agents["a"].keyframes[kf], other.agents["a"].keyframes[kf]
+        assert (a.kf_id, a.frame_index, a.stamp) == (b.kf_id, b.frame_index, b.stamp)
+        np.testing.assert_array_equal(a.descriptor, b.descriptor)
+        assert (a.T_prev_kf_kf is None) == (b.T_prev_kf_kf is None)
 
 
 def test_a_late_resend_of_older_decoder_weights_keeps_the_newer_ones():

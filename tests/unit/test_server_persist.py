@@ -115,7 +115,7 @@ def test_a_full_disk_holds_acks_keeps_polling_logs_once_and_recovers(
     assert _acks(acks, agent_bus) == [0, 3]  # an ack covers every seq up to its own
     assert protocol.decode(node._serve_status("", None)).summary["persist"]["failures"] == 0
     state, _ = durable.load_generation(tmp_path / "state.pt", _torch_load)
-    assert len(state["registry"]["agents"][0]["keyframes"]) == 4
+    assert len(state["registry"]["agents"][0]["keyframes"]["kf_id"]) == 4
     node.close()
 
 
