@@ -52,6 +52,7 @@ from cpslam.server.backend import Backend, Outgoing
 from cpslam.server.bounds import fit_status, status_size
 from cpslam.server.export import export_run
 from cpslam.server.persist import AckGate, StateWriter, detach
+from cpslam.server.presence import AgentPresence
 from cpslam.server.traffic import (
     KeyCounter,
     PollTimes,
@@ -109,12 +110,11 @@ class ServerNode:
         self._t_start = time.monotonic()
         self._status: dict = {}
         self._status_at = time.monotonic()
-        self._present: dict[str, bool] = {}  # agent -> alive, written by liveliness callbacks
         self.session = keys.check_id(cfg.transport.session, "transport.session")
         self.image_timeout_s = image_timeout_s
         self.backend = Backend.from_config(cfg, self.fetch_image, **backend_kwargs)
         limits = cfg.limits
-        self.max_agents = limits.max_agents
+        self.presence = AgentPresence(self.session, limits.max_agents)
         self.status_budget = limits.status_reply_kb * 1024
         self.dropped = CappedCounter(limits.max_counter_keys)
         self._log = LogThrottle()
@@ -122,8 +122,7 @@ class ServerNode:
         self.step_errors = 0
         self.finalised: FinalResult | None = None
         self._lock = threading.RLock()  # the back end is touched by poll and the status query
-        self._events: list[tuple[str, str]] = []  # liveliness (join|leave, agent)
-        self._events_lock = threading.Lock()
+        self._status_lock = threading.Lock()
         self._handles: list[Any] = []
         self._subs: list[Any] = []
         # Agents' messages per concrete key (daemon thread only).
@@ -143,8 +142,8 @@ class ServerNode:
         self._handles = [
             *self._subs,
             self.bus.declare_queryable(keys.server_status(s), self._serve_status),
-            self.bus.watch_liveliness(keys.alive_agents(s), on_join=self._joined,
-                                      on_leave=self._left),
+            self.bus.watch_liveliness(keys.alive_agents(s), on_join=self.presence.joined,
+                                      on_leave=self.presence.left),
             self.bus.declare_liveliness(keys.alive_server(s, self.backend.state_id)),
         ]
         self._snapshot()
@@ -284,9 +283,7 @@ class ServerNode:
     def fetch_image(self, agent_id: str, kf_id: int) -> KeyframeImage | None:
         """A keyframe's RGB-D from the agent's image queryable; None if it cannot be had."""
         record = self.backend.registry.agents.get(agent_id)
-        with self._events_lock:
-            gone = self._present.get(agent_id) is False
-        if gone or (record is not None and not record.alive):
+        if self.presence.gone(agent_id) or (record is not None and not record.alive):
             # A departed agent cannot answer: do not wait out the query timeout.
             logger.debug("image %s/%d: agent has left", agent_id, kf_id)
             return None
@@ -376,9 +373,9 @@ class ServerNode:
     def _serve_status(self, key: str, payload: bytes | None) -> bytes:
         # Never wait for a long back-end step: answer from the snapshot of the last poll,
         # with presence as the liveliness callbacks saw it a moment ago.
-        with self._events_lock:
+        with self._status_lock:
             summary = copy.deepcopy(self._status)
-            present = dict(self._present)
+        present = self.presence.alive()
         for agent, alive in present.items():
             if agent in summary.get("agents", {}):
                 summary["agents"][agent]["alive"] = alive
@@ -392,47 +389,11 @@ class ServerNode:
 
     def _snapshot(self) -> None:
         status = self.backend.status()
-        with self._events_lock:
+        with self._status_lock:
             self._status, self._status_at = status, time.monotonic()
 
-    def _joined(self, key: str) -> None:
-        self._event("join", key, True)
-
-    def _left(self, key: str) -> None:
-        self._event("leave", key, False)
-
-    def _event(self, kind: str, key: str, alive: bool) -> None:
-        try:
-            agent = keys.parse_alive_agent(self.session, key)
-        except ProtocolError:
-            agent = None  # reported when the event is handled
-        with self._events_lock:
-            # Presence and events are keyed by peers' tokens: bounded like the registry.
-            if agent is not None and agent not in self._present and (
-                    len(self._present) >= self.max_agents):
-                refused = True
-            else:
-                refused = False
-                if agent is not None:
-                    self._present[agent] = alive
-                # An admitted agent's event is always kept (a lost leave would keep a round
-                # waiting for it); a malformed key only gets its log line while there is room.
-                if agent is not None or len(self._events) < 4 * self.max_agents:
-                    self._events.append((kind, key))
-        if refused and self._log.allow("presence cap") is not None:
-            logger.warning("liveliness of agent %s ignored: already %d agents (limits."
-                           "max_agents)", agent, self.max_agents)
-
     def _liveliness(self) -> None:
-        with self._events_lock:
-            events, self._events = self._events, []
-        for kind, key in events:
-            try:
-                agent = keys.parse_alive_agent(self.session, key)
-            except ProtocolError as exc:
-                logger.warning("liveliness key %s: %s", key, exc)
-                continue
-            logger.info("agent %s %s", agent, "joined" if kind == "join" else "left")
+        for kind, agent in self.presence.take_events():
             if kind == "leave":
                 with self._lock:
                     self.backend.agent_left(agent)

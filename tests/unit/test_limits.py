@@ -451,13 +451,15 @@ def test_presence_of_agents_beyond_the_cap_is_ignored(tmp_path) -> None:
     cfg = load_config("tiny", overrides=["limits.max_agents=4"], env={})
     with InMemoryBus() as bus:
         node = ServerNode(cfg, bus, tmp_path)
+        presence = node.presence
         for i in range(1000):
-            node._joined(keys.alive_agent("default", f"x{i}"))
+            presence.joined(keys.alive_agent("default", f"x{i}"))
         for i in range(1000):
-            node._joined(f"cpslam/default/alive/agent/bad{i}/x")  # malformed token keys
-        assert len(node._present) == 4 and len(node._events) <= 16
-        node._left(keys.alive_agent("default", "x0"))
-        assert node._present["x0"] is False
+            presence.joined(f"cpslam/default/alive/agent/bad{i}/x")  # malformed token keys
+        assert len(presence.alive()) == 4 and len(presence._events) <= 16
+        presence.left(keys.alive_agent("default", "x0"))
+        assert presence.gone("x0") and presence.alive()["x0"] is False
+        assert presence.take_events()[-1] == ("leave", "x0") and not presence.take_events()
 
 
 def test_the_agent_daemon_survives_server_messages_it_cannot_apply(
