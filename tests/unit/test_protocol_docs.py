@@ -64,7 +64,7 @@ def test_standalone_snippet_decodes_our_keyframe(first):
 
 
 def test_standalone_snippet_refuses_other_messages():
-    with pytest.raises(ValueError, match="not a version-3 keyframe"):
+    with pytest.raises(ValueError, match=f"not a version-{P.PROTOCOL_VERSION} keyframe"):
         _snippet()["decode_keyframe"](P.encode(sample("ack")))
 
 
