@@ -15,7 +15,14 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from render_systems import _faults, _gpu_check, _gpu_profile, _scale, _table  # noqa: E402
+from render_systems import (  # noqa: E402
+    _faults,
+    _gpu_check,
+    _gpu_profile,
+    _pose_graph_cost,
+    _scale,
+    _table,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"
@@ -291,7 +298,7 @@ RENDERERS = {"odometry": _odometry, "loop_edges": _loop_edges, "collab": _collab
              "rerun_overhead": _rerun_overhead, "persist": _persist, "flood": _flood,
              "transport": _transport, "bandwidth": _bandwidth, "scale": _scale,
              "faults": _faults, "gpu_check": _gpu_check,
-             "gpu_profile": _gpu_profile}
+             "gpu_profile": _gpu_profile, "pose_graph_cost": _pose_graph_cost}
 
 
 if __name__ == "__main__":

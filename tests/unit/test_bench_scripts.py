@@ -265,3 +265,16 @@ def test_faults_bench_a_lost_message_is_resent_and_nothing_is_lost(tmp_path: Pat
     assert over["ate_mean_m"] == pytest.approx(sum(ates) / 2)
     assert len(over["ratios"]) == 2 and over["nothing_lost"]
     assert report["over_seeds"]["none"]["spread"] >= 1.0
+
+
+def test_pose_graph_cost_bench_measures_a_graph_that_the_loops_correct() -> None:
+    from cpslam.common.config import load_config
+
+    bench = _bench_module("pose_graph_cost")
+    row = bench.measure(load_config("tiny", env={}).pose_graph, 3, 100, 10, 1, 0)
+    assert row["nodes"] == 300 and row["edges"] == 3 * 99 + row["loops"] and row["loops"] == 60
+    # 1 mm / 0.05 degree drift per keyframe against 5 mm loops: the graph must pull it back
+    assert row["rmse_after_m"] < 0.6 * row["rmse_before_m"]
+    text = _bench_module("render_results").RENDERERS["pose_graph_cost"](
+        {"preset": "tiny", "loop_every": 10, "rows": [row]})
+    assert "| 3 | 100 | 300 |" in text
