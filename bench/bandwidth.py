@@ -4,12 +4,15 @@
     python bench/bandwidth.py --frames 0:150:3 --preset tiny          # a quick look
     python bench/bandwidth.py --variants before after no-decoder-delta
     python bench/bandwidth.py --variants after coalesce2 --scene room --scene-seed 7
+    python bench/bandwidth.py --variants after --real          # real 7-Scenes frames
 
 The demo's setup run in-process (`cpslam run`'s lock-step loop on the in-memory bus, the same
 nodes and codec as over Zenoh): `cpslam dataset synth --scene apartment --agents 2
 --num-frames 300` (320x240, cached under runs/bench-data/), every third frame, keyframes every
 10 processed frames (`--scene`, `--scene-seed`: another synthetic scene, for data the
-defaults were not tuned on). Variants (the `link` section, docs/configuration.md):
+defaults were not tuned on; `--real`: the shared 7-Scenes kitchen frames as two agents,
+`--real-split` slices, real depth noise and texture). Variants (the `link` section,
+docs/configuration.md):
 
 - before: every mapping call a delta of every point whose float16 features changed, full
   float32 decoders, no compression (the wire format before the link section, but for the
@@ -38,6 +41,7 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+KITCHEN = ROOT.parent / "shared" / "data" / "7scenes-kitchen-0-299"
 sys.path.insert(0, str(ROOT / "bench"))
 
 VARIANTS = {
@@ -70,6 +74,9 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--scene", default="apartment", choices=["apartment", "room"])
     parser.add_argument("--scene-seed", type=int, default=0, help="seed of the generated scene")
+    parser.add_argument("--real", action="store_true", help="the 7-Scenes kitchen frames instead")
+    parser.add_argument("--real-split", default="0:150:3,150:300:3",
+                        help="frame slices of the two real agents, comma-separated")
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "bandwidth.json")
     args = parser.parse_args()
     logging.basicConfig(level=logging.WARNING)
@@ -79,15 +86,16 @@ def main() -> None:
         **bench_header("bandwidth", sys.argv),
         "preset": args.preset,
         "frames": args.frames,
-        "scene": args.scene,
-        "scene_seed": args.scene_seed,
+        "scene": "7-Scenes kitchen" if args.real else args.scene,
+        "scene_seed": None if args.real else args.scene_seed,
+        "real_split": args.real_split if args.real else None,
         "variants": {},
     }
     for name in args.variants:
         t0 = time.perf_counter()
         report["variants"][name] = run_variant(
             args.preset, args.frames, VARIANTS[name], args.seed, args.render_views,
-            args.scene, args.scene_seed,
+            args.scene, args.scene_seed, args.real_split.split(",") if args.real else None,
         )
         report["variants"][name]["wall_s"] = round(time.perf_counter() - t0, 1)
         print(f"{name}: {json.dumps(report['variants'][name]['summary'])}", flush=True)
@@ -110,7 +118,8 @@ def main() -> None:
 
 
 def run_variant(preset: str, frames: str, sets: list[str], seed: int, views: int,
-                scene: str = "apartment", scene_seed: int = 0) -> dict:
+                scene: str = "apartment", scene_seed: int = 0,
+                real_split: list[str] | None = None) -> dict:
     import tempfile
 
     from cpslam.agent.standalone import open_for_config
@@ -118,11 +127,14 @@ def run_variant(preset: str, frames: str, sets: list[str], seed: int, views: int
     from cpslam.demo import scene_data
     from cpslam.run import run_collab
 
-    paths = scene_data(
-        ROOT / "runs" / "bench-data", scene, 2, 300, 320, 240, scene_seed, show_progress=False
-    )
     cfg = load_config(preset, overrides=["keyframes.every=10", f"run.seed={seed}", *sets], env={})
-    seqs = [open_for_config(cfg, p, frames=frames) for p in paths]
+    if real_split:
+        seqs = [open_for_config(cfg, KITCHEN, frames=f) for f in real_split]
+    else:
+        paths = scene_data(
+            ROOT / "runs" / "bench-data", scene, 2, 300, 320, 240, scene_seed, show_progress=False
+        )
+        seqs = [open_for_config(cfg, p, frames=frames) for p in paths]
     with tempfile.TemporaryDirectory() as tmp:
         result = run_collab(cfg, seqs, Path(tmp) / "run", "cpu", show_progress=False)
         metrics = json.loads((Path(tmp) / "run" / "metrics.json").read_text())

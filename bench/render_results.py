@@ -267,9 +267,11 @@ def _bandwidth(report: dict) -> str:
                 f"joint ATE x{ratio['joint_ate']}.\n")
     scene = report.get("scene", "apartment")
     scene += f" (scene seed {report['scene_seed']})" if report.get("scene_seed") else ""
-    return (f"Preset `{report['preset']}`, frames `{report['frames']}` of each agent's "
-            f"300-frame {scene} walk; bytes the server received per second of each agent's "
-            "sensor time (kB per sensor-second), in all and by message type. *server copy*: "
+    frames = (f"frames `{report['real_split']}` of the {scene} as the two agents"
+              if report.get("real_split") else
+              f"frames `{report['frames']}` of each agent's 300-frame {scene} walk")
+    return (f"Preset `{report['preset']}`, {frames}; bytes the server received per second "
+            "of each agent's sensor time (kB per sensor-second), in all and by message type. *server copy*: "
             "the agent's final map rendered at its keyframes with the features the server "
             "holds against its own.\n\n"
             + _table(rows) + "\n\n" + _table(summary) + "\n" + note)
