@@ -271,9 +271,9 @@ def _bandwidth(report: dict) -> str:
               if report.get("real_split") else
               f"frames `{report['frames']}` of each agent's 300-frame {scene} walk")
     return (f"Preset `{report['preset']}`, {frames}; bytes the server received per second "
-            "of each agent's sensor time (kB per sensor-second), in all and by message type. *server copy*: "
-            "the agent's final map rendered at its keyframes with the features the server "
-            "holds against its own.\n\n"
+            "of each agent's sensor time (kB per sensor-second), in all and by message type. "
+            "*server copy*: the agent's final map rendered at its keyframes with the features "
+            "the server holds against its own.\n\n"
             + _table(rows) + "\n\n" + _table(summary) + "\n" + note)
 
 
