@@ -53,6 +53,7 @@ from cpslam.protocol import (
     ServerUpdate,
     SubmapDelta,
 )
+from cpslam.protocol.images import WIRE_DEPTH_SCALE, quantise_depth
 
 if TYPE_CHECKING:
     from cpslam.agent.odometry import FrameResult, Odometry
@@ -61,10 +62,6 @@ if TYPE_CHECKING:
 __all__ = ["AgentLink"]
 
 logger = logging.getLogger(__name__)
-
-WIRE_DEPTH_SCALE = 1000.0
-"""Depth units per metre in image replies: 1 mm steps err by half a millimetre at most, below
-any depth sensor's noise, and compress a third smaller than the store's 0.2 mm steps."""
 
 MAX_WAITING_DECODERS = 16
 """Shared decoders of other groups an agent holds on to (the newest groups first)."""
@@ -96,6 +93,7 @@ class AgentLink:
         feature_threshold, feature_codec: which known points are resent, and how features
             travel (`SubmapMirror`).
         decoder_delta: send decoder weights as an int8 delta against the last group decoder.
+        depth_step_mm_per_m2: keyframe depth goes in steps of this times depth² (`quantise_depth`).
     """
 
     def __init__(
@@ -115,6 +113,7 @@ class AgentLink:
         feature_threshold: float = 0.0,
         feature_codec: str = "float16",
         decoder_delta: bool = False,
+        depth_step_mm_per_m2: float = 0.0,
     ) -> None:
         if min(frames_every, round_every_mappings, submap_every_mappings) < 1:
             raise ValueError(f"AgentLink: frames_every, round_every_mappings and "
@@ -126,6 +125,7 @@ class AgentLink:
         self.frames_every, self.round_every_mappings = frames_every, round_every_mappings
         self.federation = federation
         self.image_codec, self.jpeg_quality = image_codec, jpeg_quality
+        self.depth_step_mm_per_m2 = depth_step_mm_per_m2
         self.own = int(odometry.agent_id)
         self.group_id = agent_id
         self.group_members = [agent_id]
@@ -382,6 +382,8 @@ class AgentLink:
         except KeyError:
             rgb, depth, intr = kf.rgb_small, kf.depth_small, store.intrinsics_small
         self.stats["images"] += 1
+        if request.want_depth:
+            depth = quantise_depth(depth, self.depth_step_mm_per_m2)
         return KeyframeImage.from_metres(
             depth if request.want_depth else None, depth_scale=WIRE_DEPTH_SCALE,
             agent_id=self.agent_id, kf_id=kf.kf_id, fx=intr.fx, fy=intr.fy, cx=intr.cx,

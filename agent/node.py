@@ -102,7 +102,8 @@ class AgentNode:
                               submap_every_mappings=cfg.link.submap_every_mappings,
                               feature_threshold=cfg.link.feature_threshold,
                               feature_codec=cfg.link.feature_codec,
-                              decoder_delta=cfg.link.decoder_delta)
+                              decoder_delta=cfg.link.decoder_delta,
+                              depth_step_mm_per_m2=cfg.link.depth_step_mm_per_m2)
         self.refused: str | None = None
         """The server's reason when it refused this incarnation (the agent must stop)."""
         self.results: list[FrameResult] = []

@@ -20,7 +20,7 @@ also reports Open3D's frame-to-frame RGB-D odometry over the same pairs (`odomet
 a loop edge should be no worse than chaining odometry between its two frames.
 
 Usage: python bench/loop_edges.py [--scenes 4] [--scene-base 100] [--factors 0.5 1]
-       [--preset cpu] [--set a.b=v ...] [--calibrate] [--json PATH]
+       [--preset cpu] [--set a.b=v ...] [--wire MM_PER_M2] [--calibrate] [--json PATH]
 """
 
 from __future__ import annotations
@@ -52,6 +52,10 @@ def main() -> None:
     parser.add_argument("--min-overlap", type=float, default=0.3)
     parser.add_argument("--preset", default="cpu")
     parser.add_argument("--set", nargs="*", default=[], help="config overrides a.b=value")
+    parser.add_argument("--wire", type=float, default=None, metavar="MM_PER_M2",
+                        help="register the images as the server receives them: JPEG colour "
+                             "and depth in steps of MM_PER_M2 x depth^2 (link."
+                             "depth_step_mm_per_m2; 0: every mm)")
     parser.add_argument("--calibrate", action="store_true",
                         help="print the loop.information_scale that calibrates chi2")
     parser.add_argument("--json", type=Path, default=None)
@@ -84,6 +88,20 @@ def main() -> None:
         args.json.write_text(json.dumps(report, indent=2) + "\n")
 
 
+def over_the_wire(rgb: np.ndarray, depth: np.ndarray, mm_per_m2: float):
+    """(rgb, depth) as the server decodes an agent's image reply of them."""
+    from cpslam import protocol
+    from cpslam.protocol import KeyframeImage
+    from cpslam.protocol.images import quantise_depth
+
+    h, w = depth.shape
+    msg = KeyframeImage.from_metres(quantise_depth(depth, mm_per_m2), 1000.0, agent_id="a",
+                                    kf_id=0, fx=1.0, fy=1.0, cx=0.0, cy=0.0, width=w,
+                                    height=h, rgb=np.ascontiguousarray(rgb))
+    back = protocol.decode(protocol.encode(msg), expected=KeyframeImage)
+    return back.rgb, back.depth_metres()
+
+
 def evaluate(path: Path, factor: float, cfg, args) -> dict:
     """Register every overlapping pair of the sequence at this size."""
     from cpslam.common.camera import resize_rgbd
@@ -105,6 +123,8 @@ def evaluate(path: Path, factor: float, cfg, args) -> dict:
         if i not in frames:
             f = seq[i]
             frames[i] = (f.rgb, f.depth) if size == 1.0 else resize_rgbd(f.rgb, f.depth, size)
+            if args.wire is not None:
+                frames[i] = over_the_wire(*frames[i], args.wire)
         return frames[i]
 
     params = RegistrationParams.from_config(cfg.loop, seed=cfg.run.seed)

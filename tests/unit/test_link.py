@@ -9,7 +9,7 @@ import torch
 
 from cpslam import protocol
 from cpslam.agent.deltas import SubmapMirror
-from cpslam.agent.link import WIRE_DEPTH_SCALE, AgentLink
+from cpslam.agent.link import AgentLink
 from cpslam.agent.odometry import Odometry
 from cpslam.common.camera import Intrinsics
 from cpslam.common.config import load_config
@@ -29,6 +29,7 @@ from cpslam.protocol import (
     ServerUpdate,
     SubmapDelta,
 )
+from cpslam.protocol.images import WIRE_DEPTH_SCALE
 
 INTR = Intrinsics(fx=64.0, fy=64.0, cx=39.5, cy=29.5, width=80, height=60)
 

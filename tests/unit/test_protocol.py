@@ -415,3 +415,26 @@ def test_tensor_names_and_counts_are_limited():
         P.DecoderWeights(**ok, tensors={f"t{i}": np.zeros(1, np.float32) for i in range(300)})
     with pytest.raises(ValidationError):
         P.DecoderWeights(**ok, tensors={})
+
+
+def test_depth_is_quantised_in_steps_that_grow_as_depth_squared():
+    from cpslam.protocol.images import image_to_wire, quantise_depth
+
+    rng = np.random.default_rng(0)
+    # a slanted wall from 0.3 to 4 m with a sensor's noise (1.5 mm x depth^2)
+    wall = np.broadcast_to(np.linspace(0.3, 4.0, 160), (120, 160))
+    z = (wall + rng.normal(0.0, 1.5e-3, wall.shape) * wall**2).astype(np.float32)
+    z[0, :10], z[1, :10] = 0.0, np.nan  # invalid depths stay invalid
+    q = quantise_depth(z, 1.5)
+    assert (q[0, :10] == 0).all() and np.isnan(q[1, :10]).all()
+    ok = np.isfinite(z) & (z > 0)
+    step_m = np.maximum(1.0, np.round(1.5 * z[ok].astype(np.float64) ** 2)) / 1000
+    assert (np.abs(q[ok] - z[ok]) <= step_m / 2 + 1e-6).all()
+    assert np.abs(q[ok] - z[ok])[z[ok] < 0.5].max() <= 0.5e-3 + 1e-6  # 1 mm steps up close
+    exact_m = np.round(z[ok].astype(np.float64) * 1000) / 1000
+    np.testing.assert_allclose(quantise_depth(z, 0.0)[ok], exact_m, atol=1e-6)
+    mm = (np.nan_to_num(q) * 1000).round().astype(np.uint16)
+    exact = (np.nan_to_num(z) * 1000).round().astype(np.uint16)
+    assert len(image_to_wire(mm, "depth")["data"]) < len(image_to_wire(exact, "depth")["data"])
+    with pytest.raises(ValueError, match="mm_per_m2"):
+        quantise_depth(z, -1.0)
