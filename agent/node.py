@@ -103,6 +103,7 @@ class AgentNode:
                               feature_threshold=cfg.link.feature_threshold,
                               feature_codec=cfg.link.feature_codec,
                               decoder_delta=cfg.link.decoder_delta,
+                              jpeg_quality=cfg.link.jpeg_quality,
                               depth_step_mm_per_m2=cfg.link.depth_step_mm_per_m2)
         self.refused: str | None = None
         """The server's reason when it refused this incarnation (the agent must stop)."""

@@ -56,6 +56,8 @@ def main() -> None:
                         help="register the images as the server receives them: JPEG colour "
                              "and depth in steps of MM_PER_M2 x depth^2 (link."
                              "depth_step_mm_per_m2; 0: every mm)")
+    parser.add_argument("--jpeg-quality", type=int, default=90,
+                        help="JPEG quality of the colour with --wire (link.jpeg_quality)")
     parser.add_argument("--calibrate", action="store_true",
                         help="print the loop.information_scale that calibrates chi2")
     parser.add_argument("--json", type=Path, default=None)
@@ -88,7 +90,7 @@ def main() -> None:
         args.json.write_text(json.dumps(report, indent=2) + "\n")
 
 
-def over_the_wire(rgb: np.ndarray, depth: np.ndarray, mm_per_m2: float):
+def over_the_wire(rgb: np.ndarray, depth: np.ndarray, mm_per_m2: float, jpeg_quality: int):
     """(rgb, depth) as the server decodes an agent's image reply of them."""
     from cpslam import protocol
     from cpslam.protocol import KeyframeImage
@@ -97,7 +99,8 @@ def over_the_wire(rgb: np.ndarray, depth: np.ndarray, mm_per_m2: float):
     h, w = depth.shape
     msg = KeyframeImage.from_metres(quantise_depth(depth, mm_per_m2), 1000.0, agent_id="a",
                                     kf_id=0, fx=1.0, fy=1.0, cx=0.0, cy=0.0, width=w,
-                                    height=h, rgb=np.ascontiguousarray(rgb))
+                                    height=h, rgb=np.ascontiguousarray(rgb),
+                                    jpeg_quality=jpeg_quality)
     back = protocol.decode(protocol.encode(msg), expected=KeyframeImage)
     return back.rgb, back.depth_metres()
 
@@ -124,7 +127,7 @@ def evaluate(path: Path, factor: float, cfg, args) -> dict:
             f = seq[i]
             frames[i] = (f.rgb, f.depth) if size == 1.0 else resize_rgbd(f.rgb, f.depth, size)
             if args.wire is not None:
-                frames[i] = over_the_wire(*frames[i], args.wire)
+                frames[i] = over_the_wire(*frames[i], args.wire, args.jpeg_quality)
         return frames[i]
 
     params = RegistrationParams.from_config(cfg.loop, seed=cfg.run.seed)
