@@ -137,8 +137,8 @@ class LinkConfig(Section):
     """Send decoder weights as int8 deltas against the last weights the server agreed on."""
     zstd_level: int = Field(default=3, ge=0, le=22)
     """zstd level of the agent's messages of 1 kB or more; 0 sends them uncompressed."""
-    jpeg_quality: int = Field(default=80, ge=1, le=100)
-    """JPEG quality of the keyframe colour images sent to the server (80: loop edges as at 90)."""
+    jpeg_quality: int = Field(default=90, ge=1, le=100)
+    """JPEG quality of the keyframe colour images sent to the server."""
     depth_step_mm_per_m2: NonNegativeFloat = 0.0
     """Keyframe depth to the server in steps of this x depth² (mm/m², >= 1 mm); 0: every mm."""
     record: bool = False
