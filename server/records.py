@@ -220,8 +220,7 @@ def _frames_state(frames: dict[int, tuple[int, np.ndarray, float]]) -> dict:
     return {
         "index": torch.tensor(order, dtype=torch.int64),
         "kf": torch.tensor([frames[f][0] for f in order], dtype=torch.int64),
-        "T_kf_frame": _t(np.stack([frames[f][1] for f in order])) if order
-        else torch.zeros(0, 4, 4, dtype=torch.float64),
+        "T_kf_frame": _stack([frames[f][1] for f in order], (4, 4), np.float64),
         "stamp": torch.tensor([frames[f][2] for f in order], dtype=torch.float64),
     }
 
