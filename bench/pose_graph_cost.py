@@ -4,7 +4,8 @@
     python bench/pose_graph_cost.py --agents 16 --keyframes 1000 --json /tmp/pg.json
 
 The server rebuilds a group's graph from its members' keyframe tracks and accepted loops and
-optimises it whole after every accepted loop (`Backend.optimise`, docs/pose_graph.md). This
+optimises it whole once per poll step in which the group accepted loops (`Backend.optimise`,
+docs/pose_graph.md). This
 bench builds the same kind of graph with `PoseGraph` and the preset's `pose_graph` section:
 N agents, each K keyframes along its own noisy walk (tracking drift: 1 mm and 0.05 degrees
 per keyframe, a random walk), one loop every `--loop-every` keyframes to the next agent and
@@ -60,7 +61,7 @@ def measure(cfg, n_agents: int, n_kf: int, loop_every: int, repeats: int, seed: 
     from cpslam.server.pose_graph import PoseGraph
 
     rng = np.random.default_rng(seed)
-    truth = [_walk(rng, n_kf, offset=3.0 * a) for a in range(n_agents)]
+    truth = [_walk(n_kf, offset=3.0 * a) for a in range(n_agents)]
     tracked = [_drift(rng, T) for T in truth]
     loops = _loops(rng, truth, loop_every)
     build_s, solve_s = [], []
@@ -86,7 +87,7 @@ def measure(cfg, n_agents: int, n_kf: int, loop_every: int, repeats: int, seed: 
     }
 
 
-def _walk(rng: np.random.Generator, n: int, offset: float) -> np.ndarray:
+def _walk(n: int, offset: float) -> np.ndarray:
     """True keyframe poses [n, 4, 4]: a smooth loop of radius 1.5 m around x = offset."""
     from cpslam.common.geometry import se3_exp
 
