@@ -41,8 +41,8 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-KITCHEN = ROOT.parent / "shared" / "data" / "7scenes-kitchen-0-299"
 sys.path.insert(0, str(ROOT / "bench"))
+from odometry_runs import KITCHEN  # noqa: E402
 
 VARIANTS = {
     "before": [
