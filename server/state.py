@@ -38,6 +38,7 @@ def backend_state(be: Backend) -> dict:
         "rounds_closed": be.rounds_closed, "merges": be.merges,
         "pose_graph_runs": be.pose_graph_runs, "update_seq": dict(be.sharing.seq),
         "loop_book": loops["loop_book"], "queued": loops["queued"],
+        "loops_skipped": loops["loops_skipped"],
     }
 
 

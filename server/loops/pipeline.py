@@ -99,6 +99,9 @@ class LoopPipeline:
         self._image_bytes = 0
         self.book = LoopBook(max_attempts=loop.max_attempts)
         self.records: list[LoopRecord] = []
+        self._accepted: dict[tuple[str, str], list[LoopRecord]] = {}  # by `_agents`
+        self.skipped = 0
+        """Candidates not verified because an accepted loop lies near (``loop.spacing``)."""
         self.queue: list[Candidate] = []  # selected by the book, waiting for verification
         self.retry: list[tuple[float, Candidate]] = []  # (due time, candidate)
         self._images: OrderedDict[tuple[str, int], KeyframeImage | None] = OrderedDict()
@@ -125,7 +128,25 @@ class LoopPipeline:
             return
         fresh = [c for c in candidates[: self.loop_cfg.max_candidates]
                  if not (c.agent_a == c.agent_b and c.kf_a == c.kf_b)]
-        self.queue += self.book.select(fresh)
+        kept = [c for c in fresh if not self._covered(c)]
+        self.skipped += len(fresh) - len(kept)
+        self.queue += self.book.select(kept)
+
+    def _covered(self, cand: Candidate) -> bool:
+        """Whether an accepted loop of the same two agents (not found an outlier) lies fewer
+        than ``loop.spacing`` keyframes from both of `cand`'s keyframes: such a pair adds an
+        edge the graph nearly has, for two image pulls. A fine candidate is covered only by a
+        fine loop, so a coarse edge never holds back a merge."""
+        spacing = self.loop_cfg.spacing
+        if spacing <= 1:
+            return False
+        for lp in self._accepted.get(_agents(cand), ()):
+            if lp.outlier or (cand.kind == "fine" and lp.kind != "fine"):
+                continue
+            ka, kb = (lp.kf_a, lp.kf_b) if lp.agent_a == cand.agent_a else (lp.kf_b, lp.kf_a)
+            if abs(ka - int(cand.kf_a)) < spacing and abs(kb - int(cand.kf_b)) < spacing:
+                return True
+        return False
 
     def regroup(self, agent: str, group_id: str) -> None:
         """The agent's keyframes now belong to `group_id` (a database may not care)."""
@@ -240,6 +261,8 @@ class LoopPipeline:
         record = loop_record(len(self.records), cand, reg, reason, self.now() - self.t_start,
                              done.seconds, self.loop_cfg.information_scale)
         self.records.append(record)
+        if record.accepted:
+            self._accepted.setdefault(_agents(record), []).append(record)
         if not done.unavailable:  # (an unavailable pair's last try was recorded above)
             self.book.record(cand, accepted=record.accepted)
         logger.info("loop %s/%d - %s/%d (%s, %.3f): %s", cand.agent_a, cand.kf_a, cand.agent_b,
@@ -277,7 +300,7 @@ class LoopPipeline:
                    "agent_b": lp.agent_b, "kf_b": lp.kf_b, "score": float(lp.score),
                    "kind": lp.kind, "accepted": bool(lp.accepted)}
                   for lp in self.records[-RECENT_LOOPS:]]
-        return {"found": self.found,
+        return {"found": self.found, "skipped": self.skipped,
                 "accepted": sum(lp.accepted for lp in self.records),
                 "rejected": sum(not lp.accepted for lp in self.records),
                 "pending": len(self.pending()), "retrying": len(self.retry), "recent": recent}
@@ -287,6 +310,7 @@ class LoopPipeline:
         return {
             "loops": [asdict(lp) for lp in self.records],
             "loop_book": self.book.state_dict(),
+            "loops_skipped": self.skipped,
             # Queued and retrying candidates are verified after a reload (the book keeps no
             # pending pairs, and the queries that found them do not run again).
             "queued": [[c.agent_a, int(c.kf_a), c.agent_b, int(c.kf_b), float(c.score),
@@ -296,6 +320,10 @@ class LoopPipeline:
     def load_state_dict(self, state: dict) -> None:
         """Restore from a back end state (its ``loops``, ``loop_book``, ``queued``)."""
         self.records = [LoopRecord(**lp) for lp in state["loops"]]
+        self._accepted = {}
+        for lp in self.records:
+            if lp.accepted:
+                self._accepted.setdefault(_agents(lp), []).append(lp)
         self.book = LoopBook(max_attempts=self.book.max_attempts)
         if "loop_book" in state:
             self.book.load_state_dict(state["loop_book"])
@@ -303,10 +331,16 @@ class LoopPipeline:
             for lp in self.records:
                 if self.book.select([lp]):
                     self.book.record(lp, accepted=lp.accepted)
+        self.skipped = int(state.get("loops_skipped", 0))
         self.retry = []
         self.queue = self.book.select([
             LoopCandidate(str(a), int(ka), str(b), int(kb), float(score), kind)
             for a, ka, b, kb, score, kind in state.get("queued", [])])
+
+
+def _agents(c: Any) -> tuple[str, str]:
+    """The two agents of a candidate or record, in a canonical order."""
+    return (c.agent_a, c.agent_b) if c.agent_a <= c.agent_b else (c.agent_b, c.agent_a)
 
 
 def _pair(c: Candidate) -> tuple[str, int, str, int]:

@@ -214,7 +214,8 @@ def test_unavailable_image_is_retried_until_the_pair_verifies(scenario):
                                     "kf_a": 5, "agent_b": record.agent_b, "kf_b": 0,
                                     "score": record.score, "kind": record.kind,
                                     "accepted": True}]
-    assert loops == {"found": 1, "accepted": 1, "rejected": 0, "pending": 0, "retrying": 0}
+    assert loops == {"found": 1, "skipped": 0, "accepted": 1, "rejected": 0, "pending": 0,
+                     "retrying": 0}
     clock.advance(50.0)
     be.step()
     assert fetch.requests.count(0) == 3 and len(be.loops) == 1  # verified: never again

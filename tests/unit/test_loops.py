@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from cpslam.common.config import load_config
 from cpslam.server.loops import DescriptorDatabase, LoopBook, LoopCandidate
 
 D = 64
@@ -281,3 +282,87 @@ def test_real_descriptor_finds_the_loop_closure(tmp_path):
     assert closing[0].intra_agent and closing[0].kind == "fine"
     # The first keyframes have no keyframe min_keyframe_gap older than themselves.
     assert all(not f for f in found[:3])
+
+
+
+class _ScriptedDatabase:
+    """A loop database whose query returns the candidates a test sets."""
+
+    def __init__(self) -> None:
+        self.next: list[LoopCandidate] = []
+
+    def add(self, agent_id, kf_id, descriptor, group):
+        pass
+
+    def query(self, agent_id, kf_id, descriptor):
+        return self.next
+
+
+class _Image:
+    """What the pipeline needs of a pulled keyframe image when registration is scripted."""
+
+    rgb, depth = None, np.ones((2, 2), np.float32)
+
+
+def _spaced_pipeline(spacing: int):
+    """A loop pipeline whose registration accepts every pair, and the image pulls it made."""
+    import time
+
+    from cpslam.common.registration import Registration
+    from cpslam.server.loops import LoopPipeline
+
+    cfg = load_config("tiny", overrides=[f"loop.spacing={spacing}"], env={}).loop
+    pulled = []
+
+    def fetch(agent, kf):
+        pulled.append((agent, kf))
+        return _Image()
+
+    def register(src, dst):
+        return Registration(np.eye(4), 1.0, 0.0, 100, "verify", True, "")
+
+    db = _ScriptedDatabase()
+    pipeline = LoopPipeline(cfg, fetch, time.monotonic, 0.0, database=db, register=register)
+    return pipeline, db, pulled
+
+
+def _offer(pipeline, db, cand: LoopCandidate) -> None:
+    db.next = [cand]
+    pipeline.query(cand.agent_a, cand.kf_a, np.zeros(4, np.float32), "g")
+    while pipeline.queue:
+        pipeline.verify(pipeline.queue.pop(0))
+
+
+def test_spacing_skips_candidates_next_to_an_accepted_loop():
+    counts = {}
+    for spacing in (1, 3):
+        pipeline, db, pulled = _spaced_pipeline(spacing)
+        # Two agents walking the same path: agent b's keyframe k resembles a's keyframe k.
+        for k in range(9):
+            _offer(pipeline, db, LoopCandidate("b", k, "a", k, 0.9, "fine"))
+        accepted = [(lp.kf_a, lp.kf_b) for lp in pipeline.records if lp.accepted]
+        counts[spacing] = (len(accepted), pipeline.skipped, len(pulled))
+        if spacing == 3:
+            assert accepted == [(0, 0), (3, 3), (6, 6)]
+    assert counts[1] == (9, 0, 18) and counts[3] == (3, 6, 6)
+
+
+def test_spacing_lets_a_fine_candidate_past_a_coarse_loop():
+    pipeline, db, _ = _spaced_pipeline(3)
+    for kind, k, kf_b in (("coarse", 0, 0), ("fine", 1, 1), ("coarse", 2, 2), ("fine", 3, 9)):
+        _offer(pipeline, db, LoopCandidate("b", k, "a", kf_b, 0.9, kind))
+    # (1, 1) is fine next to a coarse loop: verified; (2, 2) is coarse next to the fine (1, 1):
+    # skipped; (3, 9) is far from every loop on a's side: verified.
+    assert [(lp.kf_a, lp.kf_b) for lp in pipeline.records] == [(0, 0), (1, 1), (3, 9)]
+    assert pipeline.skipped == 1
+    # A loop the pose graph found an outlier covers nothing.
+    db.next = [LoopCandidate("b", 4, "a", 8, 0.9, "coarse")]
+    pipeline.query("b", 4, np.zeros(4, np.float32), "g")
+    assert not pipeline.queue and pipeline.skipped == 2
+    pipeline.records[2].outlier = True
+    pipeline.query("b", 4, np.zeros(4, np.float32), "g")
+    assert len(pipeline.queue) == 1 and pipeline.skipped == 2
+    # The count survives a reload.
+    copy, _, _ = _spaced_pipeline(3)
+    copy.load_state_dict(pipeline.state_dict())
+    assert copy.skipped == 2
