@@ -172,6 +172,7 @@ def run_variant(preset: str, frames: str, sets: list[str], seed: int, views: int
                 a: round(100 * v, 3) for a, v in (ev.get("global_origin_rmse_m") or {}).items()
             },
             "merge_time_s": ev.get("merge_time_s"),
+            "loops": {k: metrics.get("loops", {}).get(k) for k in ("found", "accepted", "skipped")},
             "merged": ev.get("merged"),
         },
     }
