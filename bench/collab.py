@@ -37,9 +37,9 @@ import time
 from pathlib import Path
 
 import numpy as np
+from odometry_runs import KITCHEN
 
 ROOT = Path(__file__).resolve().parents[1]
-KITCHEN = ROOT.parent / "shared" / "data" / "7scenes-kitchen-0-299"
 
 
 def _data(scene: str, agents: int, frames: int, loop: bool, seed: int) -> list[Path]:

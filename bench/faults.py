@@ -55,9 +55,9 @@ from typing import Any
 from benchinfo import bench_header
 from fault_run import FaultRun, LoseNext, losses, nothing_lost
 from faults_netns import partition
+from odometry_runs import KITCHEN
 
 ROOT = Path(__file__).resolve().parents[1]
-KITCHEN = ROOT.parent / "shared" / "data" / "7scenes-kitchen-0-299"
 SETS = ["mapping.iters_first=30", "run.schedule=lockstep", "run.num_threads=1"]
 # In process the clock is virtual: a lost message is resent one (virtual) second later.
 IN_PROCESS_SETS = ["transport.resend_after_s=1.0", "transport.backend=memory"]

@@ -35,12 +35,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from odometry_runs import KITCHEN
 
 from cpslam.agent.descriptor import DescriptorExtractor
 from cpslam.common.datasets import open_sequence
 
 REPO = Path(__file__).resolve().parents[1]
-KITCHEN = REPO.parent / "shared" / "data" / "7scenes-kitchen-0-299"
 _AGENT_OFFSET = 10**9  # added to frame indices of agent i, so agents never fall within the gap
 DEFAULT_VARIANTS = [
     "gem:stage6:1",
