@@ -128,23 +128,36 @@ class LoopPipeline:
             return
         fresh = [c for c in candidates[: self.loop_cfg.max_candidates]
                  if not (c.agent_a == c.agent_b and c.kf_a == c.kf_b)]
-        kept = [c for c in fresh if not self._covered(c)]
-        self.skipped += len(fresh) - len(kept)
-        self.queue += self.book.select(kept)
+        if self.loop_cfg.spacing > 1:
+            waiting = [*self.pending(), *(c for _, c in self.retry)]
+            kept: list[Candidate] = []
+            for c in fresh:
+                if self._covered(c, waiting + kept):
+                    self.skipped += 1
+                else:
+                    kept.append(c)
+            fresh = kept
+        self.queue += self.book.select(fresh)
 
-    def _covered(self, cand: Candidate) -> bool:
-        """Whether an accepted loop of the same two agents (not found an outlier) lies fewer
-        than ``loop.spacing`` keyframes from both of `cand`'s keyframes: such a pair adds an
-        edge the graph nearly has, for two image pulls. A fine candidate is covered only by a
-        fine loop, so a coarse edge never holds back a merge."""
+    def _covered(self, cand: Candidate, waiting: list[Candidate]) -> bool:
+        """Whether a pair of the same two agents, accepted (and not found an outlier) or
+        waiting for verification, lies fewer than ``loop.spacing`` keyframes from both of
+        `cand`'s keyframes: such a pair adds an edge the graph nearly has, for up to two image
+        pulls. A fine candidate is covered only by a fine pair, so a coarse edge never holds
+        back a merge."""
         spacing = self.loop_cfg.spacing
-        if spacing <= 1:
-            return False
-        for lp in self._accepted.get(_agents(cand), ()):
-            if lp.outlier or (cand.kind == "fine" and lp.kind != "fine"):
+        agents = _agents(cand)
+        near = [*(lp for lp in self._accepted.get(agents, ()) if not lp.outlier),
+                *(c for c in waiting if _agents(c) == agents)]
+        for other in near:
+            if cand.kind == "fine" and other.kind != "fine":
                 continue
-            ka, kb = (lp.kf_a, lp.kf_b) if lp.agent_a == cand.agent_a else (lp.kf_b, lp.kf_a)
-            if abs(ka - int(cand.kf_a)) < spacing and abs(kb - int(cand.kf_b)) < spacing:
+            ab, ba = (int(other.kf_a), int(other.kf_b)), (int(other.kf_b), int(other.kf_a))
+            # within one agent a pair may be stored either way round
+            sides = [ab, ba] if cand.agent_a == cand.agent_b else [
+                ab if other.agent_a == cand.agent_a else ba]
+            if any(abs(ka - int(cand.kf_a)) < spacing and abs(kb - int(cand.kf_b)) < spacing
+                   for ka, kb in sides):
                 return True
         return False
 

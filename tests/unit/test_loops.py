@@ -326,9 +326,10 @@ def _spaced_pipeline(spacing: int):
     return pipeline, db, pulled
 
 
-def _offer(pipeline, db, cand: LoopCandidate) -> None:
-    db.next = [cand]
-    pipeline.query(cand.agent_a, cand.kf_a, np.zeros(4, np.float32), "g")
+def _offer(pipeline, db, *cands: LoopCandidate) -> None:
+    """One query whose candidates are `cands`, then every queued one verified."""
+    db.next = list(cands)
+    pipeline.query(cands[0].agent_a, cands[0].kf_a, np.zeros(4, np.float32), "g")
     while pipeline.queue:
         pipeline.verify(pipeline.queue.pop(0))
 
@@ -345,6 +346,19 @@ def test_spacing_skips_candidates_next_to_an_accepted_loop():
         if spacing == 3:
             assert accepted == [(0, 0), (3, 3), (6, 6)]
     assert counts[1] == (9, 0, 18) and counts[3] == (3, 6, 6)
+
+
+def test_spacing_verifies_one_of_a_query_s_neighbouring_candidates():
+    pipeline, db, pulled = _spaced_pipeline(3)
+    # Keyframe 5 of b resembles a's keyframes 4, 5 and 6 (best first): one is enough.
+    _offer(pipeline, db, *(LoopCandidate("b", 5, "a", k, s, "fine")
+                           for k, s in ((5, 0.95), (4, 0.9), (6, 0.85))))
+    assert [(lp.kf_a, lp.kf_b) for lp in pipeline.records] == [(5, 5)]
+    assert pipeline.skipped == 2 and len(pulled) == 2
+    # Within one agent a pair may come either way round: (9, 3) covers (4, 10).
+    _offer(pipeline, db, LoopCandidate("a", 9, "a", 3, 0.9, "fine"))
+    _offer(pipeline, db, LoopCandidate("a", 4, "a", 10, 0.9, "fine"))
+    assert pipeline.skipped == 3 and len(pipeline.records) == 2
 
 
 def test_spacing_lets_a_fine_candidate_past_a_coarse_loop():
