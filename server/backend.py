@@ -143,7 +143,8 @@ class Backend:
         self.federator = Federator(
             federation, self.registry, self.groups, self.pipeline.image, self.kf_poses,
             self.member_maps, now, self.t_start, spec, decoders_factory=decoders_factory,
-            finetune_lr=finetune_lr, color_weight=color_weight, seed=seed)
+            finetune_lr=finetune_lr, color_weight=color_weight, seed=seed,
+            cached=self.pipeline.cached)
         self.sharing = MemberUpdates(self.registry, self.kf_poses, spec.grid_size, share_every_s,
                                      now, update_resend_after_s, update_max_points)
         if verify_in_background:

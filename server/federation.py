@@ -200,6 +200,8 @@ class Federator:
         finetune_lr: Adam learning rate of the decoders.
         color_weight: weight of the colour term of the fine-tune loss (the mapping loss's).
         seed: seed of every fine-tune.
+        cached: ``(agent_id, kf_id) -> bool``, whether `image` holds the keyframe already;
+            the views prefer those (no pull). None: the views are evenly spread.
         At most ``federation.finetune_views`` keyframe images (all when null) are pulled for
         one fine-tune.
     """
@@ -220,7 +222,9 @@ class Federator:
         finetune_lr: float,
         color_weight: float,
         seed: int,
+        cached: Callable[[str, int], bool] | None = None,
     ) -> None:
+        self.cached = cached
         self.fed_cfg, self.registry, self.groups = federation, registry, groups
         self.image, self.kf_poses, self.member_maps = image, kf_poses, member_maps
         self.now, self.t_start = now, t_start
@@ -330,7 +334,8 @@ class Federator:
         if not keys:
             return []
         n_views = min(self.fed_cfg.finetune_views or len(keys), len(keys))
-        pick = np.unique(np.linspace(0, len(keys) - 1, n_views).round().astype(int))
+        have = None if self.cached is None else np.array([self.cached(*k) for k in keys])
+        pick = spread_pick(len(keys), n_views, have)
         views = []
         for i in pick:
             agent, kf = keys[i]
@@ -346,3 +351,20 @@ class Federator:
         self.registry.decoder_bases.add(group.group_id, group.round, group.decoder)
         return GroupDecoder(group_id=group.group_id, round=group.round, members=contributors,
                             n_samples=group.decoder_samples, tensors=group.decoder)
+
+
+def spread_pick(n: int, k: int, preferred: np.ndarray | None = None) -> np.ndarray:
+    """Indices of k of n items spread evenly over them (sorted, distinct); with `preferred`
+    (bool [n]) each pick moves to the nearest preferred item within half the spacing, so
+    images the server holds already stand in for their neighbours."""
+    targets = np.linspace(0, n - 1, k)
+    pick = targets.round().astype(int)
+    if preferred is not None and preferred.any() and k > 0:
+        half = (n - 1) / max(k - 1, 1) / 2 if k > 1 else (n - 1) / 2
+        where = np.nonzero(preferred)[0]
+        for j, t in enumerate(targets):
+            near = where[np.abs(where - t) <= half]
+            if len(near):
+                pick[j] = near[np.argmin(np.abs(near - t))]
+    return np.unique(pick)
+

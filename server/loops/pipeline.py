@@ -306,6 +306,11 @@ class LoopPipeline:
                 self._image_bytes -= _image_nbytes(self._images.popitem(last=False)[1])
         return image
 
+    def cached(self, agent: str, kf: int) -> bool:
+        """Whether the keyframe's image is in the cache (`image` pulls nothing for it)."""
+        with self._images_lock:
+            return self._images.get((agent, int(kf))) is not None
+
     def status(self) -> dict:
         """The loop counts of the status summary and, as ``recent``, the last RECENT_LOOPS
         verified pairs (what a live view draws as loop edges)."""

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from cpslam.server.federation import FederatedRound, fedavg
+from cpslam.server.federation import FederatedRound, fedavg, spread_pick
 
 
 def make_states(n: int, seed: int = 0) -> list[dict[str, np.ndarray]]:
@@ -172,3 +172,13 @@ def test_finetune_views_spread_over_the_keyframes_or_all(views, pulled):
                     **{k: v for k, v in finetune_args().items() if k != "finetune_lr_features"})
     assert fed._views(Group("a", "a", T_group_agent={"a": np.eye(4)})) == []  # no image
     assert asked == pulled
+
+
+def test_fine_tune_views_prefer_images_the_server_holds():
+    assert spread_pick(20, 5).tolist() == [0, 5, 10, 14, 19]
+    held = np.zeros(20, bool)
+    held[[1, 6, 7, 13, 18]] = True
+    # Each pick moves to the nearest held image within half the spacing (2.4 here).
+    assert spread_pick(20, 5, held).tolist() == [1, 6, 10, 13, 18]
+    assert spread_pick(20, 5, np.zeros(20, bool)).tolist() == [0, 5, 10, 14, 19]
+    assert spread_pick(3, 8).tolist() == [0, 1, 2]
