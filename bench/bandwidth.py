@@ -22,7 +22,7 @@ docs/configuration.md):
 - no-decoder-delta: after with full float32 decoders (the ATE with and without decoder deltas);
 - coalesce2: after with a sub-map delta every 2 mapping calls instead of 4;
 - spacing1, spacing3: after with ``loop.spacing`` 1 (every loop candidate verified, its
-  keyframe images pulled) or 3 (candidates within 2 keyframes of an accepted loop skipped).
+  keyframe images pulled) or 3 (candidates within 2 keyframes of a verified pair skipped).
 
 Per variant and agent: bytes per second of sensor time per message type (the server's
 counters in metrics.json), the joint se3 ATE of both global trajectories, the merge time, and

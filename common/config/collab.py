@@ -58,8 +58,8 @@ class LoopConfig(Section):
     max_attempts: PositiveInt = 3
     """Tries of a candidate whose keyframe images could not be pulled before it is rejected."""
     spacing: PositiveInt = 1
-    """Skip a candidate fewer than this many keyframes, on both sides, from a pair of the same
-    agents accepted or waiting (a fine one only by a fine pair); 1 verifies every candidate."""
+    """Skip a candidate with a keyframe fewer than this many keyframes from one of an accepted
+    or waiting pair of the same agents (a fine one only by a fine pair); 1 verifies all."""
     coarse_method: Literal["icp", "none"] = "icp"
     """Coarse loop pose before refinement: icp = RANSAC + ICP on RGB-D; none = identity (paper)."""
     icp_max_distance: PositiveFloat = 0.2

@@ -141,24 +141,21 @@ class LoopPipeline:
 
     def _covered(self, cand: Candidate, waiting: list[Candidate]) -> bool:
         """Whether a pair of the same two agents, accepted (and not found an outlier) or
-        waiting for verification, lies fewer than ``loop.spacing`` keyframes from both of
-        `cand`'s keyframes: such a pair adds an edge the graph nearly has, for up to two image
-        pulls. A fine candidate is covered only by a fine pair, so a coarse edge never holds
-        back a merge."""
+        waiting for verification, has a keyframe fewer than ``loop.spacing`` keyframes from
+        `cand`'s keyframe of the same agent: the graph already ties that stretch of one
+        agent's track to the other's, and the pair would cost up to two image pulls. A fine
+        candidate is covered only by a fine pair, so a coarse edge never holds back a merge."""
         spacing = self.loop_cfg.spacing
         agents = _agents(cand)
         near = [*(lp for lp in self._accepted.get(agents, ()) if not lp.outlier),
                 *(c for c in waiting if _agents(c) == agents)]
+        mine = {(cand.agent_a, int(cand.kf_a)), (cand.agent_b, int(cand.kf_b))}
         for other in near:
             if cand.kind == "fine" and other.kind != "fine":
                 continue
-            ab, ba = (int(other.kf_a), int(other.kf_b)), (int(other.kf_b), int(other.kf_a))
-            # within one agent a pair may be stored either way round
-            sides = [ab, ba] if cand.agent_a == cand.agent_b else [
-                ab if other.agent_a == cand.agent_a else ba]
-            if any(abs(ka - int(cand.kf_a)) < spacing and abs(kb - int(cand.kf_b)) < spacing
-                   for ka, kb in sides):
-                return True
+            for agent, kf in ((other.agent_a, int(other.kf_a)), (other.agent_b, int(other.kf_b))):
+                if any(agent == a and abs(kf - k) < spacing for a, k in mine):
+                    return True
         return False
 
     def regroup(self, agent: str, group_id: str) -> None:

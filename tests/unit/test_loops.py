@@ -355,28 +355,32 @@ def test_spacing_verifies_one_of_a_query_s_neighbouring_candidates():
                            for k, s in ((5, 0.95), (4, 0.9), (6, 0.85))))
     assert [(lp.kf_a, lp.kf_b) for lp in pipeline.records] == [(5, 5)]
     assert pipeline.skipped == 2 and len(pulled) == 2
-    # Within one agent a pair may come either way round: (9, 3) covers (4, 10).
-    _offer(pipeline, db, LoopCandidate("a", 9, "a", 3, 0.9, "fine"))
-    _offer(pipeline, db, LoopCandidate("a", 4, "a", 10, 0.9, "fine"))
-    assert pipeline.skipped == 3 and len(pipeline.records) == 2
+    # One pair per stretch of either track: (7, 11) shares b's stretch around 5 with (5, 5).
+    _offer(pipeline, db, LoopCandidate("b", 7, "a", 11, 0.9, "fine"))
+    assert pipeline.skipped == 3 and len(pipeline.records) == 1
+    # Within one agent a pair may come either way round: (12, 20) covers (21, 30).
+    _offer(pipeline, db, LoopCandidate("a", 20, "a", 12, 0.9, "fine"))
+    _offer(pipeline, db, LoopCandidate("a", 30, "a", 21, 0.9, "fine"))
+    assert pipeline.skipped == 4 and len(pipeline.records) == 2
 
 
 def test_spacing_lets_a_fine_candidate_past_a_coarse_loop():
     pipeline, db, _ = _spaced_pipeline(3)
-    for kind, k, kf_b in (("coarse", 0, 0), ("fine", 1, 1), ("coarse", 2, 2), ("fine", 3, 9)):
+    for kind, k, kf_b in (("coarse", 0, 0), ("fine", 1, 1), ("coarse", 2, 2), ("fine", 5, 9),
+                          ("fine", 3, 9)):
         _offer(pipeline, db, LoopCandidate("b", k, "a", kf_b, 0.9, kind))
     # (1, 1) is fine next to a coarse loop: verified; (2, 2) is coarse next to the fine (1, 1):
-    # skipped; (3, 9) is far from every loop on a's side: verified.
-    assert [(lp.kf_a, lp.kf_b) for lp in pipeline.records] == [(0, 0), (1, 1), (3, 9)]
-    assert pipeline.skipped == 1
+    # skipped; (5, 9) is far from every loop: verified; (3, 9) shares a's keyframe 9 with it.
+    assert [(lp.kf_a, lp.kf_b) for lp in pipeline.records] == [(0, 0), (1, 1), (5, 9)]
+    assert pipeline.skipped == 2
     # A loop the pose graph found an outlier covers nothing.
     db.next = [LoopCandidate("b", 4, "a", 8, 0.9, "coarse")]
     pipeline.query("b", 4, np.zeros(4, np.float32), "g")
-    assert not pipeline.queue and pipeline.skipped == 2
+    assert not pipeline.queue and pipeline.skipped == 3
     pipeline.records[2].outlier = True
     pipeline.query("b", 4, np.zeros(4, np.float32), "g")
-    assert len(pipeline.queue) == 1 and pipeline.skipped == 2
+    assert len(pipeline.queue) == 1 and pipeline.skipped == 3
     # The count survives a reload.
     copy, _, _ = _spaced_pipeline(3)
     copy.load_state_dict(pipeline.state_dict())
-    assert copy.skipped == 2
+    assert copy.skipped == 3
