@@ -251,13 +251,16 @@ def _bandwidth(report: dict) -> str:
                          copy.get("psnr_server_vs_local_db", "-"),
                          copy.get("depth_diff_cm", "-")))
     summary = [("variant", "mean kB/sensor-s", "joint ATE cm", "origin ATE cm per agent",
-                "merged", "wall s")]
+                "loops accepted / verified (skipped)", "merged", "wall s")]
     for name, v in variants.items():
         s = v["summary"]
         origin = s.get("origin_ate_cm") or {}
+        loops = s.get("loops") or {}
         summary.append((name, f"{s['bytes_per_sensor_s_mean'] / 1e3:.1f}",
                         s.get("joint_ate_cm", "-"),
                         " / ".join(f"{origin[a]}" for a in sorted(origin)) or "-",
+                        f"{loops['accepted']} / {loops['found']} ({loops.get('skipped') or 0})"
+                        if loops.get("found") is not None else "-",
                         ", ".join(a for a, m in sorted((s.get("merged") or {}).items()) if m)
                         or "none", v.get("wall_s", "-")))
     ratio = report.get("ratio_after_over_before", {})

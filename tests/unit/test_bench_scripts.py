@@ -194,8 +194,10 @@ def test_bandwidth_table_reads_a_report() -> None:
               "ratio_after_over_before": {"bytes_per_sensor_s": 0.34, "joint_ate": 1.01}}
     text = render._bandwidth(report)
     assert "| after | 0 | 34.0 | 13.0 | 55.0 | 0.01 |" in text
-    assert "| after | 34.0 | 0.2 | 0.3 / 0.4 | 0, 1 | 9 |" in text
+    assert "| after | 34.0 | 0.2 | 0.3 / 0.4 | - | 0, 1 | 9 |" in text
     assert "x0.34" in text and "x1.01" in text
+    summary["loops"] = {"found": 7, "accepted": 6, "skipped": 39}
+    assert "| after | 34.0 | 0.2 | 0.3 / 0.4 | 6 / 7 (39) | 0, 1 | 9 |" in render._bandwidth(report)
 
 
 def test_faults_bench_counts_dropped_decoders_apart_from_losses() -> None:
