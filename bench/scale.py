@@ -13,8 +13,8 @@ are maps of one scene in N frames: the server must find the loops between them a
 them. Once everything is acknowledged the replicas stay up (answering image requests) until
 the server has no loop candidate left to verify (at most ``--linger`` seconds: a pair whose
 images can no longer be pulled is never verified); the replay figures cover that whole
-time. Then it finalises (``cpslam finalise``) and the bench reads the server's
-``metrics.json`` and trajectories.
+time (``--server-set KEY=VALUE``: a config override for the server). Then it finalises
+(``cpslam finalise``) and the bench reads the server's ``metrics.json`` and trajectories.
 
 Per N: messages the server handled per second of replay; the server's CPU share over the
 replay (``/proc/<pid>/stat``, 1.0 = one core); the worst and 99th-percentile poll (a message
@@ -86,6 +86,13 @@ def main() -> None:
         help="after everything is acknowledged, keep the replicas up at most "
         "this long while the server still has loop candidates to verify",
     )
+    parser.add_argument(
+        "--server-set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="config override for the server (repeatable), e.g. loop.spacing=3",
+    )
     parser.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "cpslam-scale")
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
@@ -100,6 +107,7 @@ def main() -> None:
             "clock": args.clock,
             "linger_max_s": args.linger,
             "seed": args.seed,
+            "server_sets": args.server_set,
             "sequence": "synthetic room" if args.seq is None else args.seq.name,
             "sources": len(sources),
             "runs": [],
@@ -107,7 +115,8 @@ def main() -> None:
     )
     for n in args.agents:
         row = run_one(
-            n, sources, args.cache / f"n{n}", args.speed, args.seed, args.clock, args.linger
+            n, sources, args.cache / f"n{n}", args.speed, args.seed, args.clock, args.linger,
+            args.server_set,
         )
         report["runs"].append(row)
         print_row(row)
@@ -174,6 +183,7 @@ def run_one(
     seed: int,
     clock: str,
     linger_s: float,
+    server_sets: list[str] = (),
 ) -> dict:
     from cpslam.agent.daemon import ServerPresence
     from cpslam.agent.recording import read_recording
@@ -208,6 +218,7 @@ def run_one(
             "--no-report",
             "--persist-every",
             "0.2",
+            *(arg for kv in server_sets for arg in ("--set", kv)),
         ],
         stdout=log,
         stderr=subprocess.STDOUT,

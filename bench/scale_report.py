@@ -69,6 +69,7 @@ def summarise(
         "largest_group": max(len(g["members"]) for g in groups),
         "loop_verification_s": round(metrics.get("timings", {}).get("loop_verification_s", 0), 2),
         "loops_found": metrics["loops"]["found"],
+        "loops_skipped": metrics["loops"].get("skipped", 0),
         "loops_accepted": metrics["loops"]["accepted"],
         "joint_ate_m": ate and round(ate, 4),
         "bytes_per_agent": bytes_per_key,

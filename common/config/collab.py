@@ -58,8 +58,7 @@ class LoopConfig(Section):
     max_attempts: PositiveInt = 3
     """Tries of a candidate whose keyframe images could not be pulled before it is rejected."""
     spacing: PositiveInt = 1
-    """Skip a candidate with a keyframe fewer than this many keyframes from one of an accepted
-    or waiting pair of the same agents (a fine one only by a fine pair); 1 verifies all."""
+    """Skip a candidate nearer (keyframes) than this to an accepted or queued pair; 1 skips none."""
     coarse_method: Literal["icp", "none"] = "icp"
     """Coarse loop pose before refinement: icp = RANSAC + ICP on RGB-D; none = identity (paper)."""
     icp_max_distance: PositiveFloat = 0.2
