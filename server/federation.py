@@ -360,11 +360,10 @@ def spread_pick(n: int, k: int, preferred: np.ndarray | None = None) -> np.ndarr
     targets = np.linspace(0, n - 1, k)
     pick = targets.round().astype(int)
     if preferred is not None and preferred.any() and k > 0:
-        half = (n - 1) / max(k - 1, 1) / 2 if k > 1 else (n - 1) / 2
+        half = (n - 1) / (2 * (k - 1)) if k > 1 else (n - 1) / 2
         where = np.nonzero(preferred)[0]
         for j, t in enumerate(targets):
             near = where[np.abs(where - t) <= half]
             if len(near):
                 pick[j] = near[np.argmin(np.abs(near - t))]
     return np.unique(pick)
-

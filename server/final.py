@@ -38,7 +38,7 @@ def final_result(be: Backend) -> FinalResult:
                default=None)
     metrics = run_metrics(groups, be.registry, agents, be.loops, be.loops_found, be.merges,
                           be.rounds_closed, be.pose_graph_runs, pg, refined, timings)
-    metrics["loops"]["skipped"] = be.pipeline.skipped  # near an accepted loop: loop.spacing
+    metrics["loops"]["skipped"] = be.pipeline.skipped  # near a verified pair: loop.spacing
     metrics["main_group"] = main  # the group written as fused_map.* / decoders_<g>.pt
     return FinalResult(agents, maps, decoders, main, graph if graph.num_nodes else None,
                        metrics)

@@ -101,7 +101,7 @@ class LoopPipeline:
         self.records: list[LoopRecord] = []
         self._accepted: dict[tuple[str, str], list[LoopRecord]] = {}  # by `_agents`
         self.skipped = 0
-        """Candidates not verified because an accepted loop lies near (``loop.spacing``)."""
+        """Candidates not verified: an accepted or waiting pair lies near (``loop.spacing``)."""
         self.queue: list[Candidate] = []  # selected by the book, waiting for verification
         self.retry: list[tuple[float, Candidate]] = []  # (due time, candidate)
         self._images: OrderedDict[tuple[str, int], KeyframeImage | None] = OrderedDict()
@@ -157,6 +157,10 @@ class LoopPipeline:
                 if any(agent == a and abs(kf - k) < spacing for a, k in mine):
                     return True
         return False
+
+    def _index(self, record: LoopRecord) -> None:
+        if record.accepted:
+            self._accepted.setdefault(_agents(record), []).append(record)
 
     def regroup(self, agent: str, group_id: str) -> None:
         """The agent's keyframes now belong to `group_id` (a database may not care)."""
@@ -271,8 +275,7 @@ class LoopPipeline:
         record = loop_record(len(self.records), cand, reg, reason, self.now() - self.t_start,
                              done.seconds, self.loop_cfg.information_scale)
         self.records.append(record)
-        if record.accepted:
-            self._accepted.setdefault(_agents(record), []).append(record)
+        self._index(record)
         if not done.unavailable:  # (an unavailable pair's last try was recorded above)
             self.book.record(cand, accepted=record.accepted)
         logger.info("loop %s/%d - %s/%d (%s, %.3f): %s", cand.agent_a, cand.kf_a, cand.agent_b,
@@ -337,8 +340,7 @@ class LoopPipeline:
         self.records = [LoopRecord(**lp) for lp in state["loops"]]
         self._accepted = {}
         for lp in self.records:
-            if lp.accepted:
-                self._accepted.setdefault(_agents(lp), []).append(lp)
+            self._index(lp)
         self.book = LoopBook(max_attempts=self.book.max_attempts)
         if "loop_book" in state:
             self.book.load_state_dict(state["loop_book"])
