@@ -18,7 +18,7 @@ def _table(rows: list[tuple]) -> str:
 
 def _scale(report: dict) -> str:
     rows = [("agents", "msgs/s", "server CPU", "poll worst / p99 s", "max queue", "peak RSS MB",
-             "merges (last at s)", "slowest merge s", "verify s", "loops acc./found",
+             "merges (last at s)", "slowest merge s", "verify s", "loops acc./found (skipped)",
              "largest group", "joint ATE m", "replay s", "resent")]
     keys_rows = [("agents", "direction", "bytes per agent by key")]
     for r in report["runs"]:
@@ -27,22 +27,24 @@ def _scale(report: dict) -> str:
                      f"{r['poll_worst_s']} / {r['poll_p99_s']}", r["max_queue_depth"],
                      r["peak_rss_mb"], f"{r['merges']} ({last})", r.get("merge_worst_s", "-"),
                      r["loop_verification_s"],
-                     f"{r['loops_accepted']}/{r['loops_found']}",
+                     f"{r['loops_accepted']}/{r['loops_found']} ({r.get('loops_skipped', 0)})",
                      f"{r['largest_group']}/{r['agents']}", r["joint_ate_m"],
                      r["replay_wall_s"], r.get("resent", "-")))
         for direction in ("from_agent", "to_agent"):
             cells = r["bytes_per_agent"][direction]
             keys_rows.append((r["agents"], direction.replace("_", " "),
                               ", ".join(f"{k} {v}" for k, v in cells.items())))
+    sets = report.get("server_sets") or []
+    server = f" (server with `{' '.join(sets)}`)" if sets else ""
     return (f"One recorded agent ({report['sequence']}, {report.get('frames') or '-'} frames, "
             f"tiny preset) replayed as N agents on the {report['clock']} clock at speed "
-            f"{report['speed']}, over Zenoh TCP to a `cpslam-server` process (docs/scale.md). "
+            f"{report['speed']}, over Zenoh TCP to a `cpslam-server` process{server} "
+            "(docs/scale.md). "
             "Server CPU: share of one core over the replay; resent: messages the replicas "
             "published again, unacknowledged `transport.resend_after_s` after sending; slowest "
             "merge: the longest from a merging loop's verification to its members' updates, "
             "the sum of its timed stages (`merges[].stages` in `metrics.json`).\n\n"
             + _table(rows) + "\n\n" + _table(keys_rows) + "\n")
-
 
 
 def _faults(report: dict) -> str:
