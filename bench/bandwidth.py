@@ -21,8 +21,9 @@ docs/configuration.md):
   features, int8 decoder deltas, zstd);
 - no-decoder-delta: after with full float32 decoders (the ATE with and without decoder deltas);
 - coalesce2: after with a sub-map delta every 2 mapping calls instead of 4;
-- spacing1, spacing3: after with ``loop.spacing`` 1 (every loop candidate verified, its
-  keyframe images pulled) or 3 (candidates within 2 keyframes of a verified pair skipped).
+- spacing1, spacing2, spacing3: after with ``loop.spacing`` 1 (every loop candidate verified,
+  its keyframe images pulled), 2 or 3 (candidates within 1 or 2 keyframes of a verified pair
+  skipped).
 
 Per variant and agent: bytes per second of sensor time per message type (the server's
 counters in metrics.json), the joint se3 ATE of both global trajectories, the merge time, and
@@ -58,6 +59,7 @@ VARIANTS = {
     "no-decoder-delta": ["link.decoder_delta=false"],
     "coalesce2": ["link.submap_every_mappings=2"],
     "spacing1": ["loop.spacing=1"],
+    "spacing2": ["loop.spacing=2"],
     "spacing3": ["loop.spacing=3"],
 }
 
