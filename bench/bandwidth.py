@@ -21,6 +21,7 @@ docs/configuration.md):
   features, int8 decoder deltas, zstd);
 - no-decoder-delta: after with full float32 decoders (the ATE with and without decoder deltas);
 - coalesce2: after with a sub-map delta every 2 mapping calls instead of 4;
+- threshold2: after with ``link.feature_threshold`` 0.2 instead of 0.1;
 - spacing1, spacing2, spacing3: after with ``loop.spacing`` 1 (every loop candidate verified,
   its keyframe images pulled), 2 or 3 (candidates within 1 or 2 keyframes of a verified pair
   skipped).
@@ -58,6 +59,7 @@ VARIANTS = {
     "after": [],
     "no-decoder-delta": ["link.decoder_delta=false"],
     "coalesce2": ["link.submap_every_mappings=2"],
+    "threshold2": ["link.feature_threshold=0.2"],
     "spacing1": ["loop.spacing=1"],
     "spacing2": ["loop.spacing=2"],
     "spacing3": ["loop.spacing=3"],
