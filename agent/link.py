@@ -382,7 +382,8 @@ class AgentLink:
         except KeyError:
             rgb, depth, intr = kf.rgb_small, kf.depth_small, store.intrinsics_small
         self.stats["images"] += 1
-        if request.want_depth:
+        if request.want_depth and self.depth_step_mm_per_m2 > 0:
+            # (at 0 the millimetres `from_metres` rounds to are the steps already)
             depth = quantise_depth(depth, self.depth_step_mm_per_m2)
         return KeyframeImage.from_metres(
             depth if request.want_depth else None, depth_scale=WIRE_DEPTH_SCALE,

@@ -183,7 +183,7 @@ def run_one(
     seed: int,
     clock: str,
     linger_s: float,
-    server_sets: list[str] = (),
+    server_sets: tuple[str, ...] | list[str] = (),
 ) -> dict:
     from cpslam.agent.daemon import ServerPresence
     from cpslam.agent.recording import read_recording

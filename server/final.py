@@ -36,9 +36,9 @@ def final_result(be: Backend) -> FinalResult:
     timings = {"final_pose_graph_s": t_graph, "refinement_s": time.perf_counter() - t1}
     main = max(maps, key=lambda g: (len(be.groups.groups[g].members), len(maps[g])),
                default=None)
-    metrics = run_metrics(groups, be.registry, agents, be.loops, be.loops_found, be.merges,
-                          be.rounds_closed, be.pose_graph_runs, pg, refined, timings)
-    metrics["loops"]["skipped"] = be.pipeline.skipped  # near a verified pair: loop.spacing
+    metrics = run_metrics(groups, be.registry, agents, be.loops, be.loops_found,
+                          be.pipeline.skipped, be.merges, be.rounds_closed, be.pose_graph_runs,
+                          pg, refined, timings)
     metrics["main_group"] = main  # the group written as fused_map.* / decoders_<g>.pt
     return FinalResult(agents, maps, decoders, main, graph if graph.num_nodes else None,
                        metrics)

@@ -87,9 +87,9 @@ def pose_graph_figures(graph: PoseGraph, result: PoseGraphResult | None, loops: 
 
 
 def run_metrics(groups: list[Group], registry: Registry, agents: list[AgentResult],
-                loop_records: list[LoopRecord], loops_found: int, merges: list[dict],
-                rounds_closed: list[dict], pose_graph_runs: list[dict], pg: dict,
-                refine: list[dict], timings: dict[str, float]) -> dict[str, Any]:
+                loop_records: list[LoopRecord], loops_found: int, loops_skipped: int,
+                merges: list[dict], rounds_closed: list[dict], pose_graph_runs: list[dict],
+                pg: dict, refine: list[dict], timings: dict[str, float]) -> dict[str, Any]:
     """The metrics.json of a run (``pg``: the final pose graph's figures, ``refine``: each
     group's map refinement)."""
     loops = [asdict(lp) for lp in loop_records]
@@ -107,6 +107,7 @@ def run_metrics(groups: list[Group], registry: Registry, agents: list[AgentResul
                                 "dropped": dict(registry.agents[a.agent_id].dropped)}
                    for a in agents},
         "loops": {"found": loops_found,
+                  "skipped": loops_skipped,  # near a verified pair: loop.spacing
                   "accepted": sum(lp["accepted"] for lp in loops),
                   "rejected": sum(not lp["accepted"] for lp in loops),
                   "list": loops},
