@@ -36,6 +36,7 @@ import torch
 from cpslam.agent.corrections import correct_keyframes, move_world, rigid
 from cpslam.agent.deltas import DecoderBase, SubmapMirror, encode_features
 from cpslam.agent.foreign import merge_foreign
+from cpslam.agent.images import image_reply
 from cpslam.agent.outbox import Outbox
 from cpslam.common.bounds import tensor_mismatch
 from cpslam.common.geometry import compose, invert
@@ -53,7 +54,6 @@ from cpslam.protocol import (
     ServerUpdate,
     SubmapDelta,
 )
-from cpslam.protocol.images import WIRE_DEPTH_SCALE, quantise_depth
 
 if TYPE_CHECKING:
     from cpslam.agent.odometry import FrameResult, Odometry
@@ -369,8 +369,9 @@ class AgentLink:
         return True
 
     def answer_image(self, request: KeyframeImageRequest) -> KeyframeImage | ErrorReply:
-        """The keyframe's full-size RGB-D (the processed frame's) with its intrinsics; the
-        small copy for a keyframe saved without its full-size images."""
+        """The keyframe's full-size RGB-D (the processed frame's), resized by the request's
+        scale, with its intrinsics; the small copy for a keyframe saved without its full-size
+        images."""
         store = self.odometry.keyframes
         if request.agent_id != self.agent_id or request.kf_id not in store:
             return ErrorReply(code="not_found", reason=f"agent {self.agent_id} has no keyframe "
@@ -382,14 +383,8 @@ class AgentLink:
         except KeyError:
             rgb, depth, intr = kf.rgb_small, kf.depth_small, store.intrinsics_small
         self.stats["images"] += 1
-        if request.want_depth and self.depth_step_mm_per_m2 > 0:
-            # (at 0 the millimetres `from_metres` rounds to are the steps already)
-            depth = quantise_depth(depth, self.depth_step_mm_per_m2)
-        return KeyframeImage.from_metres(
-            depth if request.want_depth else None, depth_scale=WIRE_DEPTH_SCALE,
-            agent_id=self.agent_id, kf_id=kf.kf_id, fx=intr.fx, fy=intr.fy, cx=intr.cx,
-            cy=intr.cy, width=intr.width, height=intr.height, rgb_codec=self.image_codec,
-            jpeg_quality=self.jpeg_quality, rgb=rgb if request.want_rgb else None)
+        return image_reply(request, rgb, depth, intr, self.image_codec, self.jpeg_quality,
+                           self.depth_step_mm_per_m2)
 
     # ------------------------------------------------------------------------- internals
 

@@ -24,7 +24,9 @@ docs/configuration.md):
 - threshold2: after with ``link.feature_threshold`` 0.2 instead of 0.1;
 - spacing1, spacing2, spacing3: after with ``loop.spacing`` 1 (every loop candidate verified,
   its keyframe images pulled), 2 or 3 (candidates within 1 or 2 keyframes of a verified pair
-  skipped).
+  skipped);
+- images-half, images-half-spacing3: after with keyframe images pulled at half the processed
+  width and height (``loop.image_scale`` 0.5), the second also with ``loop.spacing`` 3.
 
 Per variant and agent: bytes per second of sensor time per message type (the server's
 counters in metrics.json), the joint se3 ATE of both global trajectories, the merge time, and
@@ -63,6 +65,8 @@ VARIANTS = {
     "spacing1": ["loop.spacing=1"],
     "spacing2": ["loop.spacing=2"],
     "spacing3": ["loop.spacing=3"],
+    "images-half": ["loop.image_scale=0.5"],
+    "images-half-spacing3": ["loop.image_scale=0.5", "loop.spacing=3"],
 }
 
 

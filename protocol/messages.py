@@ -321,6 +321,8 @@ class KeyframeImageRequest(Message):
     """Send the colour image."""
     want_depth: bool = True
     """Send the depth image."""
+    scale: float = Field(default=1.0, ge=0.1, le=1.0)
+    """Fraction of the processed frame's width and height wanted (1: the processed size)."""
 
     @model_validator(mode="after")
     def _check(self) -> KeyframeImageRequest:

@@ -167,7 +167,7 @@ _BUILDERS: dict[str, Callable[..., Message]] = {
     "decoder_weights": _decoder,
     "frame_poses": _frames,
     "keyframe_image_request": lambda rng: KeyframeImageRequest(
-        agent_id="agent-0", kf_id=3, want_depth=False
+        agent_id="agent-0", kf_id=3, want_depth=False, scale=0.5
     ),
     "keyframe_image": _image,
     "server_update": _update,

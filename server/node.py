@@ -287,7 +287,8 @@ class ServerNode:
             # A departed agent cannot answer: do not wait out the query timeout.
             logger.debug("image %s/%d: agent has left", agent_id, kf_id)
             return None
-        request = KeyframeImageRequest(agent_id=agent_id, kf_id=int(kf_id))
+        request = KeyframeImageRequest(agent_id=agent_id, kf_id=int(kf_id),
+                                       scale=self.cfg.loop.image_scale)
         key = keys.agent_image(self.session, agent_id, int(kf_id))
         replies = self.bus.query(key, protocol.encode(request), timeout_s=self.image_timeout_s)
         for reply in replies:

@@ -59,6 +59,8 @@ class LoopConfig(Section):
     """Tries of a candidate whose keyframe images could not be pulled before it is rejected."""
     spacing: PositiveInt = 1
     """Skip a candidate nearer (keyframes) than this to an accepted or queued pair; 1 skips none."""
+    image_scale: float = Field(default=1.0, ge=0.1, le=1.0)
+    """Pull keyframe images at this fraction of the agents' processed width and height."""
     coarse_method: Literal["icp", "none"] = "icp"
     """Coarse loop pose before refinement: icp = RANSAC + ICP on RGB-D; none = identity (paper)."""
     icp_max_distance: PositiveFloat = 0.2

@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from cpslam import protocol
+from cpslam.agent.images import rescale_reply
 from cpslam.agent.node import new_incarnation
 from cpslam.agent.outbox import Outbox
 from cpslam.agent.recording import Recording
@@ -323,12 +324,11 @@ class ReplayAgent:
             if image is None:
                 image = self._images[kf] = protocol.decode(recorded, expected=KeyframeImage)
             self.stats["images"] += 1
-        update: dict[str, Any] = {"agent_id": self.agent_id}
-        if not request.want_rgb and image.depth is not None:
-            update["rgb"] = None
-        if not request.want_depth and image.rgb is not None:
-            update["depth"] = None
-        return protocol.encode(image.model_copy(update=update))
+        try:
+            reply = rescale_reply(image, request)
+        except ValueError as exc:
+            return protocol.encode(ErrorReply(code="not_found", reason=str(exc)[:4000]))
+        return protocol.encode(reply)
 
 
 _TOPIC = {

@@ -262,6 +262,27 @@ def test_image_request_answered_from_the_keyframe_store(warm) -> None:
     assert isinstance(missing, ErrorReply) and missing.code == "not_found"
 
 
+def test_image_request_at_half_scale_gets_half_the_size_with_matching_intrinsics(warm) -> None:
+    link, _ = warm
+    full = link.answer_image(KeyframeImageRequest(agent_id="a0", kf_id=1))
+    half = link.answer_image(KeyframeImageRequest(agent_id="a0", kf_id=1, scale=0.5,
+                                                  want_rgb=False))
+    assert isinstance(half, KeyframeImage) and half.rgb is None
+    intr = link.odometry.keyframes.intrinsics.scaled(0.5)
+    assert (half.width, half.height) == (intr.width, intr.height)
+    assert (half.width, half.height) == (round(full.width / 2), round(full.height / 2))
+    np.testing.assert_allclose([half.fx, half.fy, half.cx, half.cy],
+                               [intr.fx, intr.fy, intr.cx, intr.cy])
+    # Every other pixel of the full depth, where the 2x2 block around it agrees, is what a
+    # half-size depth holds there (no holes invented, no edge's two sides mixed).
+    d_full, d_half = full.depth_metres(), half.depth_metres()
+    assert (d_half > 0).mean() >= 0.9 * (d_full > 0).mean()
+    block = d_full[:2 * half.height, :2 * half.width].reshape(half.height, 2, half.width, 2)
+    flat = (block.max(axis=(1, 3)) - block.min(axis=(1, 3)) < 1e-3) & (block.min(axis=(1, 3)) > 0)
+    np.testing.assert_allclose(d_half[flat], block.mean(axis=(1, 3))[flat], atol=1.5e-3)
+    protocol.decode(protocol.encode(half), expected=KeyframeImage)
+
+
 def test_joining_a_group_offers_weights_at_the_next_mapping() -> None:
     link = _link(rounds=100)  # without a merge, weights would wait for 100 mapping calls
     msgs = _run(link, 0, 3)

@@ -55,7 +55,7 @@ def test_round_trip_every_type(msg):
         data = decompress(data, P.max_bytes(msg.type_name()))
     wire = msgpack.unpackb(data, raw=False)
     assert list(wire)[:2] == ["type", "version"]
-    assert wire["version"] == P.PROTOCOL_VERSION == 4
+    assert wire["version"] == P.PROTOCOL_VERSION == 5
 
 
 def test_decoded_arrays_are_writable_native_copies():

@@ -14,7 +14,7 @@ from cpslam.common.bus import InMemoryBus, InMemoryNetwork
 from cpslam.common.bus.subscription import Sample, Subscription
 from cpslam.common.config import load_config
 from cpslam.common.place_recognition import descriptor_dim
-from cpslam.protocol import Ack, GroupDecoder, KeyframeMsg, keys
+from cpslam.protocol import Ack, GroupDecoder, KeyframeImageRequest, KeyframeMsg, keys
 from cpslam.server.backend import Outgoing
 from cpslam.server.node import ServerNode
 from cpslam.server.traffic import traffic_per_agent, traffic_per_group
@@ -107,6 +107,21 @@ def test_images_are_not_requested_from_an_agent_that_left(tmp_path: Path,
     monkeypatch.setattr(node.bus, "query", lambda key, *a, **kw: queries.append(key) or [])
     assert node.fetch_image("a", 0) is None
     assert queries == []  # no query, so no waiting out its 30 s timeout
+
+
+def test_image_requests_ask_for_the_configured_scale(tmp_path: Path, monkeypatch) -> None:
+    node, _, _ = _setup(tmp_path, persist_every_s=0.0)
+    node.cfg = node.cfg.model_copy(update={
+        "loop": node.cfg.loop.model_copy(update={"image_scale": 0.5})})
+    asked: list[KeyframeImageRequest] = []
+
+    def query(key: str, payload: bytes, **kw) -> list:
+        asked.append(protocol.decode(payload, expected=KeyframeImageRequest))
+        return []
+
+    monkeypatch.setattr(node.bus, "query", query)
+    assert node.fetch_image("a", 4) is None
+    assert [(r.agent_id, r.kf_id, r.scale) for r in asked] == [("a", 4, 0.5)]
 
 
 def test_traffic_per_agent_groups_keys_and_rates() -> None:

@@ -169,6 +169,14 @@ def test_replay_agent_serves_recorded_images_under_its_own_id(recorded) -> None:
         )
         image = protocol.decode(reply.payload, expected=KeyframeImage)
         assert image.agent_id == "r5" and image.kf_id == kf
+        half = KeyframeImageRequest(agent_id="r5", kf_id=kf, scale=0.5, want_rgb=False)
+        (reply,) = s_bus.query(
+            keys.agent_image("default", "r5", kf), protocol.encode(half), timeout_s=5.0
+        )
+        small = protocol.decode(reply.payload, expected=KeyframeImage)
+        assert small.rgb is None and small.depth is not None
+        assert (small.width, small.height) == (round(image.width / 2), round(image.height / 2))
+        assert small.fx == pytest.approx(image.fx * small.width / image.width)
         (missing,) = s_bus.query(keys.agent_image("default", "r5", 999), None, timeout_s=5.0)
         assert protocol.decode(missing.payload, expected=ErrorReply).code == "not_found"
         agent.close()
