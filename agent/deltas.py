@@ -59,6 +59,8 @@ class SubmapMirror:
         self.threshold, self.codec = float(threshold), codec
         self.ids = np.zeros(0, np.int64)  # sorted
         self.features = np.zeros((0, feature_dim), np.float32)
+        # seq of the message that carried each point's full row (position, anchor, colour)
+        self.seqs = np.zeros(0, np.int64)
 
     def select(self, ids: np.ndarray, features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(mask [N] of the rows to send, ids the server holds that are gone) for the current
@@ -81,22 +83,39 @@ class SubmapMirror:
                 send[known] = moved > self.threshold * np.abs(held).max(axis=1)
         return send, np.setdiff1d(self.ids, ids)
 
+    def feature_only(self, ids: np.ndarray, send: np.ndarray, acked_seq: int) -> np.ndarray:
+        """Mask [N] of the rows of `send` that may go as features alone: points whose full row
+        travelled in a message the server has acknowledged (seq <= `acked_seq`), so it holds
+        them. A point's anchor, position and colour never change under its id."""
+        out = np.zeros(len(ids), bool)
+        if len(self.ids) and send.any():
+            rows = np.nonzero(send)[0]
+            pos = np.minimum(np.searchsorted(self.ids, ids[rows]), len(self.ids) - 1)
+            out[rows] = (self.ids[pos] == ids[rows]) & (self.seqs[pos] <= acked_seq)
+        return out
+
     def commit(
-        self, ids: np.ndarray, features: np.ndarray, send: np.ndarray, received: np.ndarray
+        self, ids: np.ndarray, send: np.ndarray, received: np.ndarray, seq: int,
+        feature_only: np.ndarray | None = None,
     ) -> None:
         """The server now holds `received` (float32, rows of ``ids[send]``) for the sent rows
         and its old copy for the others it knew; points not in `ids` are gone, and new points
-        left out of this message stay unknown (sent by a later one)."""
+        left out of this message stay unknown (sent by a later one). Rows of `send` not in
+        `feature_only` travelled whole in message `seq`."""
         keep = send.copy()
         held = np.zeros((len(ids), self.features.shape[1]), np.float32)
+        seqs = np.full(len(ids), int(seq), np.int64)
         held[send] = received
-        old = np.nonzero(~send)[0]
+        old = np.nonzero(~send | (feature_only if feature_only is not None else False))[0]
         if len(old) and len(self.ids):
             pos = np.minimum(np.searchsorted(self.ids, ids[old]), len(self.ids) - 1)
             hit = self.ids[pos] == ids[old]
             keep[old[hit]] = True
-            held[old[hit]] = self.features[pos[hit]]
+            unsent = hit & ~send[old]
+            held[old[unsent]] = self.features[pos[unsent]]
+            seqs[old[hit]] = self.seqs[pos[hit]]
         self.ids, self.features = np.asarray(ids, np.int64)[keep], held[keep]
+        self.seqs = seqs[keep]
 
 
 class DecoderBase:

@@ -92,6 +92,7 @@ class AgentLink:
         submap_every_mappings: a sub-map delta goes every this many mapping calls.
         feature_threshold, feature_codec: which known points are resent, and how features
             travel (`SubmapMirror`).
+        feature_rows: a known point the server acknowledged goes with its features alone.
         decoder_delta: send decoder weights as an int8 delta against the last group decoder.
         depth_step_mm_per_m2: keyframe depth goes in steps of this times depth² (`quantise_depth`).
     """
@@ -112,6 +113,7 @@ class AgentLink:
         submap_every_mappings: int = 1,
         feature_threshold: float = 0.0,
         feature_codec: str = "float16",
+        feature_rows: bool = False,
         decoder_delta: bool = False,
         depth_step_mm_per_m2: float = 0.0,
     ) -> None:
@@ -148,6 +150,7 @@ class AgentLink:
         self.mirror = SubmapMirror(odometry.point_map.feature_dim, feature_threshold,
                                    feature_codec)  # type: ignore[arg-type]
         self.submap_every_mappings = submap_every_mappings
+        self.feature_rows = feature_rows
         self.decoder_delta = decoder_delta
         self.decoder_base = DecoderBase()
         self._submap_mappings = 0
@@ -270,15 +273,22 @@ class AgentLink:
             send[np.nonzero(send)[0][max_points:]] = False
         if not send.any() and not len(removed):
             return None
-        fields, received = encode_features(feats[send], self.mirror.codec)
-        self.mirror.commit(ids, feats, send, received)
-        r = rows[torch.from_numpy(np.nonzero(send)[0]).to(rows.device)]
+        alone = (self.mirror.feature_only(ids, send, self.outbox.floor) if self.feature_rows
+                 else np.zeros_like(send))
+        whole = send & ~alone
+        # feature rows: the whole points' first, then those going alone
+        order = np.concatenate((np.nonzero(whole)[0], np.nonzero(alone)[0]))
+        fields, received = encode_features(feats[order], self.mirror.codec)
+        in_mask_order = np.empty_like(received)
+        in_mask_order[np.argsort(np.argsort(order))] = received
+        self.mirror.commit(ids, send, in_mask_order, self._seq, alone)
+        r = rows[torch.from_numpy(np.nonzero(whole)[0]).to(rows.device)]
         return self._stamp(SubmapDelta(
-            agent_id=self.agent_id, seq=0, point_ids=ids[send],
+            agent_id=self.agent_id, seq=0, point_ids=ids[whole],
             anchor_kf_ids=pm.anchor_kf[r].cpu().numpy().astype(np.int32),
             xyz_local=pm.xyz_local[r].detach().cpu().numpy().astype(np.float32),
             colors=pm.color[r].cpu().numpy().astype(np.uint8),
-            removed_ids=removed.astype(np.int64), **fields))
+            removed_ids=removed.astype(np.int64), feature_ids=ids[alone], **fields))
 
     def _decoder_weights(self) -> DecoderWeights:
         tensors = {k: v.detach().cpu().numpy().astype(np.float32)

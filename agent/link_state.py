@@ -40,7 +40,7 @@ _SCALARS = (
 
 _FIELDS = ("agent_id", "group_members", "T_group_agent", "foreign_index", "frame_kf",
            "frame_index", "server_state", "descriptor_kfs", "descriptors", "sent_ids",
-           "sent_features", "outbox", "pending_frames")
+           "sent_features", "sent_seqs", "outbox", "pending_frames")
 
 
 def link_state(link: AgentLink) -> dict:
@@ -58,6 +58,7 @@ def link_state(link: AgentLink) -> dict:
         descriptors=[torch.from_numpy(d.copy()) for d in link._descriptors.values()],
         sent_ids=torch.from_numpy(link.mirror.ids.astype(np.int64)),
         sent_features=torch.from_numpy(link.mirror.features.astype(np.float32)),
+        sent_seqs=torch.from_numpy(link.mirror.seqs.astype(np.int64)),
         outbox=[
             torch.frombuffer(bytearray(protocol.encode(m)), dtype=torch.uint8)
             for m in link.unacked()
@@ -94,6 +95,9 @@ def load_link_state(link: AgentLink, state: dict) -> None:
     }
     link.mirror.ids = state["sent_ids"].cpu().numpy().copy()
     link.mirror.features = state["sent_features"].cpu().numpy().astype(np.float32)
+    link.mirror.seqs = state["sent_seqs"].cpu().numpy().astype(np.int64)
+    if not len(link.mirror.ids) == len(link.mirror.features) == len(link.mirror.seqs):
+        raise ValueError("link state: sent_ids, sent_features and sent_seqs differ in length")
     link._pending_frames = [
         (int(i), float(t), int(k), T.cpu().numpy().copy()) for i, t, k, T in state["pending_frames"]
     ]

@@ -101,6 +101,7 @@ class AgentNode:
                               outbox=outbox, update_window=t.update_window,
                               submap_every_mappings=cfg.link.submap_every_mappings,
                               feature_threshold=cfg.link.feature_threshold,
+                              feature_rows=cfg.link.feature_rows,
                               feature_codec=cfg.link.feature_codec,
                               decoder_delta=cfg.link.decoder_delta,
                               jpeg_quality=cfg.link.jpeg_quality,

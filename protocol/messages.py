@@ -52,6 +52,7 @@ Int8Features = Annotated[np.ndarray, ArraySpec("int8", ("N", "F"))]
 RowScales = Annotated[np.ndarray, ArraySpec("float32", ("N",), finite=True)]
 Colors = Annotated[np.ndarray, ArraySpec("uint8", ("N", 3))]
 RemovedIds = Annotated[np.ndarray, ArraySpec("int64", ("M",))]
+UpdatedIds = Annotated[np.ndarray, ArraySpec("int64", ("U",))]
 
 
 class KeyframeMsg(Message):
@@ -136,9 +137,11 @@ class SubmapDelta(Message):
 
     A point is identified by (agent_id, point id); a later delta carrying the same id replaces
     it. Positions are local to the anchor keyframe, so a keyframe pose correction moves its
-    points without resending them. Features travel either as float16 (`features`) or as int8
-    with one scale per point (`features_int8` times `feature_scales`); `feature_values` gives
-    them as float32 either way.
+    points without resending them. A point the server already holds, whose features alone
+    changed, goes in `feature_ids` with only its features: the feature rows are those of
+    `point_ids`, then those of `feature_ids`. Features travel either as float16 (`features`)
+    or as int8 with one scale per row (`features_int8` times `feature_scales`);
+    `feature_values` and `updated_feature_values` give them as float32 either way.
     """
 
     max_bytes = 64 * MB
@@ -156,15 +159,17 @@ class SubmapDelta(Message):
     xyz_local: Xyz
     """Point positions in the anchor keyframe's camera frame (float32 [N, 3], m)."""
     features: Features | None = None
-    """Learned point features (float16 [N, F], F <= 1024); None when sent as int8."""
+    """Learned point features (float16 [N + U, F], F <= 1024); None when sent as int8."""
     features_int8: Int8Features | None = None
-    """Quantised features (int8 [N, F], |q| <= 127); None when sent as float16."""
+    """Quantised features (int8 [N + U, F], |q| <= 127); None when sent as float16."""
     feature_scales: RowScales | None = None
-    """Scale of each row of features_int8 (float32 [N], >= 0): feature = q * scale."""
+    """Scale of each row of features_int8 (float32 [N + U], >= 0): feature = q * scale."""
     colors: Colors
     """Point colours, RGB (uint8 [N, 3])."""
     removed_ids: RemovedIds
     """Ids of points the agent deleted (int64 [M]); disjoint from point_ids."""
+    feature_ids: UpdatedIds = Field(default_factory=lambda: np.zeros(0, np.int64))
+    """Held points whose features alone are sent (int64 [U]); disjoint from the other ids."""
 
     @model_validator(mode="after")
     def _check(self) -> SubmapDelta:
@@ -172,22 +177,34 @@ class SubmapDelta(Message):
             raise ValueError("features/features_int8: exactly one must be given")
         if (self.features_int8 is None) != (self.feature_scales is None):
             raise ValueError("feature_scales: required with features_int8, and only with it")
+        n, u = self.point_ids.shape[0], self.feature_ids.shape[0]
+        feats = self.features if self.features is not None else self.features_int8
+        if feats.shape[0] != n + u:
+            name = "features" if self.features is not None else "features_int8"
+            raise ValueError(f"{name}: has {feats.shape[0]} rows, expected {n + u} (point_ids "
+                             f"then feature_ids)")
         if self.feature_scales is not None:
-            n = self.point_ids.shape[0]
-            if self.feature_scales.shape[0] != n:
+            if self.feature_scales.shape[0] != n + u:
                 raise ValueError(f"feature_scales: has {self.feature_scales.shape[0]} rows, "
-                                 f"point_ids has {n}")
+                                 f"expected {n + u}")
             if (self.feature_scales < 0).any():
                 raise ValueError("feature_scales: must be >= 0")
-        feats = self.features if self.features is not None else self.features_int8
         check_points(
             self.point_ids,
             self.anchor_kf_ids,
             self.xyz_local,
-            feats,
+            feats[:n],
             self.colors,
             self.removed_ids,
         )
+        if u:
+            if self.feature_ids.min() < 0:
+                raise ValueError("feature_ids: ids must be >= 0")
+            ordered = np.sort(self.feature_ids)
+            if (ordered[1:] == ordered[:-1]).any():
+                raise ValueError("feature_ids: ids must be unique")
+            if np.isin(ordered, self.point_ids).any() or np.isin(ordered, self.removed_ids).any():
+                raise ValueError("feature_ids: an id cannot also be in point_ids or removed_ids")
         return self
 
     @property
@@ -197,10 +214,18 @@ class SubmapDelta(Message):
         return int(feats.shape[1])
 
     def feature_values(self) -> np.ndarray:
-        """The features as float32 [N, F], dequantised when they travelled as int8."""
+        """The features of `point_ids` as float32 [N, F], dequantised when they travelled as
+        int8."""
+        return self._values(slice(0, self.point_ids.shape[0]))
+
+    def updated_feature_values(self) -> np.ndarray:
+        """The features of `feature_ids` as float32 [U, F]."""
+        return self._values(slice(self.point_ids.shape[0], None))
+
+    def _values(self, rows: slice) -> np.ndarray:
         if self.features is not None:
-            return self.features.astype(np.float32)
-        return dequantise_rows(self.features_int8, self.feature_scales)
+            return self.features[rows].astype(np.float32)
+        return dequantise_rows(self.features_int8[rows], self.feature_scales[rows])
 
 
 class DecoderWeights(Message):

@@ -11,6 +11,8 @@ allocates the output, so a small hostile frame cannot make us reserve gigabytes.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import zstandard
 
@@ -47,7 +49,9 @@ def quantise_rows(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def dequantise_rows(q: np.ndarray, scale: np.ndarray) -> np.ndarray:
     """float32 ``q * scale`` (the inverse of `quantise_rows`, up to its rounding)."""
-    rows = q.reshape(q.shape[0] if q.ndim >= 2 else 1, -1).astype(np.float32)
+    # explicit width: -1 cannot be inferred for zero rows
+    shape = (q.shape[0], math.prod(q.shape[1:])) if q.ndim >= 2 else (1, q.size)
+    rows = q.reshape(shape).astype(np.float32)
     if scale.shape != (rows.shape[0],):
         raise ValueError(
             f"dequantise_rows: {rows.shape[0]} rows need {rows.shape[0]} scales, "

@@ -77,6 +77,24 @@ class PointTable:
         self.seq = np.concatenate((self.seq, np.full(int(take.sum()), seq, np.int64)))
         self._sort()
 
+    def update_features(self, ids: np.ndarray, features: np.ndarray, seq: int) -> np.ndarray:
+        """Replace the features of held points (ids int64 [U], features [U, F]) unless a newer
+        write of them exists; returns the mask [U] of the ids held here."""
+        held = np.zeros(len(ids), bool)
+        if len(ids) == 0 or len(self) == 0:
+            return held
+        pos = np.minimum(np.searchsorted(self.ids, ids), len(self) - 1)  # the table is sorted
+        held = self.ids[pos] == ids
+        write = held & (self.seq[pos] <= seq)
+        if write.any():
+            rows = pos[write]
+            features_now = self.features.copy()
+            features_now[rows] = features[write].astype(np.float16)
+            seqs = self.seq.copy()
+            seqs[rows] = seq
+            self.features, self.seq = features_now, seqs
+        return held
+
     def remove(self, ids: np.ndarray, seq: int, tombstone: bool = True) -> int:
         """Remove points by id (older than `seq`); with `tombstone`, remember the removal."""
         if len(ids) == 0:

@@ -277,7 +277,7 @@ class Registry:
 
     def _submap(self, rec: AgentRecord, msg: SubmapDelta) -> str:
         f = msg.feature_dim
-        if msg.point_ids.size and f != self.feature_dim:
+        if (msg.point_ids.size or msg.feature_ids.size) and f != self.feature_dim:
             return f"field features has width {f}, expected {self.feature_dim} (field config)"
         m = msg.removed_ids.size
         if self.max_removed_per_message is not None and m > self.max_removed_per_message:
@@ -305,6 +305,12 @@ class Registry:
                    msg.feature_values().astype(np.float16), msg.colors)
         rec.points.upsert(*(c[known] for c in columns), seq)
         rec.pending_points.upsert(*(c[~known] for c in columns), seq)
+        if msg.feature_ids.size:
+            values = msg.updated_feature_values()
+            held = rec.points.update_features(msg.feature_ids, values, seq)
+            held |= rec.pending_points.update_features(msg.feature_ids, values, seq)
+            if not held.all():  # removed since, or never taken (a cap)
+                self._drop(rec, "features of points not held", count=int((~held).sum()))
         overflow = len(rec.pending_points) - self.max_pending_points
         if overflow > 0:
             rec.pending_points.drop_oldest(overflow)

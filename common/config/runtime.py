@@ -131,6 +131,8 @@ class LinkConfig(Section):
     """Send a sub-map delta every this many mapping calls (the first call's at once)."""
     feature_threshold: NonNegativeFloat = 0.1
     """Resend a known point when a feature moved by this fraction of its largest (0: any)."""
+    feature_rows: bool = True
+    """Resend a point the server acknowledged as its features alone, without position or colour."""
     feature_codec: Literal["float16", "int8"] = "int8"
     """Sub-map features on the wire: float16, or int8 with one scale per point."""
     decoder_delta: bool = True

@@ -107,14 +107,14 @@ def test_threshold_is_relative_to_the_servers_copy():
     send, gone = mirror.select(ids, feats)
     assert send.all() and gone.size == 0  # all new
     _, received = encode_features(feats[send], "float16")
-    mirror.commit(ids, feats, send, received)
+    mirror.commit(ids, send, received, seq=0)
     # the same absolute change: large for point 1 (scale 1), small for point 2 (scale 10)
     moved = feats + np.array([[0.5, 0, 0, 0]], np.float32)
     moved[2] = feats[2]
     send, gone = mirror.select(np.array([1, 2, 3]), moved)
     assert send.tolist() == [True, False, False]
     # drift below the threshold adds up against the server's copy, not the last local value
-    mirror.commit(ids, moved, send, encode_features(moved[send], "float16")[1])
+    mirror.commit(ids, send, encode_features(moved[send], "float16")[1], seq=1)
     drift = moved.copy()
     drift[1, 0] = 10.6  # 0.6 above the copy's 10 after several small steps
     assert mirror.select(ids, drift)[0].tolist() == [False, False, False]
@@ -128,9 +128,34 @@ def test_threshold_is_relative_to_the_servers_copy():
 def test_threshold_zero_resends_every_change_that_survives_float16():
     mirror = SubmapMirror(2)
     ids, feats = np.array([4]), np.array([[1.0, 2.0]], np.float32)
-    mirror.commit(ids, feats, np.array([True]), encode_features(feats, "float16")[1])
+    mirror.commit(ids, np.array([True]), encode_features(feats, "float16")[1], seq=0)
     assert not mirror.select(ids, feats + 1e-6)[0].any()  # rounds away in float16
     assert mirror.select(ids, feats + 0.01)[0].all()
+
+
+def test_known_points_go_as_features_alone_once_their_full_row_is_acknowledged():
+    mirror = SubmapMirror(2, threshold=0.1, codec="float16")
+    ids, feats = np.array([1, 2]), np.array([[1.0, 0.0], [2.0, 0.0]], np.float32)
+    send, _ = mirror.select(ids, feats)
+    assert not mirror.feature_only(ids, send, acked_seq=10).any()  # new points: whole
+    mirror.commit(ids, send, encode_features(feats, "float16")[1], seq=5)
+    # point 3 is new in message 6; points 1 and 2 moved
+    ids3 = np.array([1, 2, 3])
+    moved = np.array([[2.0, 0.0], [3.0, 0.0], [1.0, 1.0]], np.float32)
+    send, _ = mirror.select(ids3, moved)
+    assert send.all()
+    # before the server acknowledged message 5 every row goes whole; after, 1 and 2 alone
+    assert not mirror.feature_only(ids3, send, acked_seq=4).any()
+    alone = mirror.feature_only(ids3, send, acked_seq=5)
+    assert alone.tolist() == [True, True, False]
+    mirror.commit(ids3, send, encode_features(moved, "float16")[1], seq=6, feature_only=alone)
+    # a feature-only row keeps the seq of the point's full row; the new point gets its own
+    assert mirror.seqs.tolist() == [5, 5, 6]
+    np.testing.assert_array_equal(mirror.features, moved)
+    # not sent at all: the old copy and seq stay
+    mirror.commit(ids3, np.array([False, False, True]), moved[2:] + 1, seq=7)
+    assert mirror.seqs.tolist() == [5, 5, 7]
+    np.testing.assert_array_equal(mirror.features[:2], moved[:2])
 
 
 # --- decoder deltas on both sides ------------------------------------------------------------

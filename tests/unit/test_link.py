@@ -122,6 +122,66 @@ def test_submap_delta_sends_only_new_or_changed_own_points() -> None:
     assert delta.removed_ids.tolist() == [gone] and delta.point_ids.tolist() == [touched]
 
 
+def test_acknowledged_points_go_back_as_features_alone() -> None:
+    link = _link(frames_every=100, rounds=100)
+    link.feature_rows = True
+    first = [m for m in _run(link, 0, 1) if isinstance(m, SubmapDelta)][0]
+    pm = link.odometry.point_map
+    moved = [int(pm.point_id[1]), int(pm.point_id[2])]
+    rows = torch.tensor([1, 2])
+    pm.set_features(rows, pm.features.detach()[rows] + 1.0)
+    # not acknowledged yet: the server may not hold them, so they go whole again
+    delta = link._submap_delta()
+    assert sorted(delta.point_ids.tolist()) == sorted(moved) and delta.feature_ids.size == 0
+    link.on_ack(Ack(agent_id="a0", seq=first.seq))  # not the second delta yet
+    pm.set_features(rows, pm.features.detach()[rows] + 1.0)
+    delta = link._submap_delta()
+    assert sorted(delta.point_ids.tolist()) == sorted(moved) and delta.feature_ids.size == 0
+    link.on_ack(Ack(agent_id="a0", seq=delta.seq))
+    pm.set_features(rows, pm.features.detach()[rows] + 1.0)
+    delta = protocol.decode(protocol.encode(link._submap_delta()), expected=SubmapDelta)
+    assert delta.point_ids.size == 0 and sorted(delta.feature_ids.tolist()) == sorted(moved)
+    # what the server decodes is what the agent holds, and what its mirror says it holds
+    got = dict(zip(delta.feature_ids.tolist(), delta.updated_feature_values(), strict=True))
+    for row, pid in zip((1, 2), moved, strict=True):
+        np.testing.assert_allclose(got[pid], pm.features.detach()[row].numpy(), atol=1e-2)
+    pos = np.searchsorted(link.mirror.ids, delta.feature_ids)
+    np.testing.assert_array_equal(link.mirror.features[pos], delta.updated_feature_values())
+
+
+def test_the_servers_copy_is_the_agents_mirror_with_feature_rows() -> None:
+    from cpslam.server.registry import Registry
+
+    link = _link(frames_every=100, rounds=100, feature_rows=True, feature_codec="int8",
+                 feature_threshold=0.1)
+    pm = link.odometry.point_map
+    registry = Registry(pm.feature_dim)
+    feature_rows = 0
+    for i in range(12):
+        for msg in _run(link, i, i + 1):
+            msg = protocol.decode(protocol.encode(msg))
+            if isinstance(msg, SubmapDelta):
+                feature_rows += msg.feature_ids.size
+            for ack in registry.handle(msg):
+                link.on_ack(ack)
+        # the field keeps learning features of points it has: some of them move enough
+        rows = torch.arange(0, len(pm), 7)
+        pm.set_features(rows, pm.features.detach()[rows] * 1.5 + 0.1)
+    link.on_ack(registry.handle(link._submap_delta())[0])
+    assert feature_rows > 0
+    rec = registry.agents["a0"]
+    tables = [t for t in (rec.points, rec.pending_points) if len(t)]
+    ids = np.concatenate([t.ids for t in tables])
+    feats = np.concatenate([t.features for t in tables])
+    xyz = np.concatenate([t.xyz for t in tables])
+    order = np.argsort(ids)
+    np.testing.assert_array_equal(ids[order], link.mirror.ids)
+    np.testing.assert_array_equal(feats[order], link.mirror.features.astype(np.float16))
+    own = pm.point_id.numpy()
+    np.testing.assert_array_equal(np.sort(own), link.mirror.ids)
+    np.testing.assert_array_equal(xyz[order], pm.xyz_local.detach().numpy()[np.argsort(own)])
+
+
 def test_outbox_trimmed_by_acks(warm) -> None:
     link = _link()
     msgs = _run(link, 0, 1)

@@ -280,6 +280,33 @@ def test_point_set_cross_checks():
         P.SubmapDelta(**{**fields, "point_ids": -1 - np.arange(4)})
 
 
+def test_feature_rows_follow_the_point_rows():
+    fields = _fields(sample("submap_delta", n_points=4, feature_dim=2))
+    extra = np.array([100, 101], np.int64)
+    feats = np.concatenate((fields["features"], np.ones((2, 2), np.float16)))
+    msg = P.SubmapDelta(**{**fields, "feature_ids": extra, "features": feats})
+    back = P.decode(P.encode(msg), expected=P.SubmapDelta)
+    assert back.feature_ids.tolist() == [100, 101]
+    np.testing.assert_array_equal(back.feature_values(), fields["features"].astype(np.float32))
+    np.testing.assert_array_equal(back.updated_feature_values(), np.ones((2, 2)))
+    with pytest.raises(ValidationError, match=r"features: has 4 rows, expected 6"):
+        P.SubmapDelta(**{**fields, "feature_ids": extra})
+    with pytest.raises(ValidationError, match="cannot also be in point_ids"):
+        P.SubmapDelta(**{**fields, "feature_ids": fields["point_ids"][:2], "features": feats})
+    with pytest.raises(ValidationError, match="feature_ids: ids must be unique"):
+        P.SubmapDelta(**{**fields, "feature_ids": np.array([100, 100]), "features": feats})
+
+
+def test_a_delta_of_removals_only_decodes_with_int8_features():
+    msg = P.SubmapDelta(agent_id="a", seq=1, point_ids=np.zeros(0, np.int64),
+                        anchor_kf_ids=np.zeros(0, np.int32), xyz_local=np.zeros((0, 3)),
+                        features_int8=np.zeros((0, 32), np.int8),
+                        feature_scales=np.zeros(0, np.float32), colors=np.zeros((0, 3), np.uint8),
+                        removed_ids=np.array([3, 4]))
+    back = P.decode(P.encode(msg), expected=P.SubmapDelta)
+    assert back.feature_values().shape == (0, 32) and back.removed_ids.tolist() == [3, 4]
+
+
 def test_pose_and_descriptor_checks():
     good = dict(agent_id="a", seq=0, kf_id=0, frame_index=0, stamp=0.0, descriptor=_unit(8))
     P.KeyframeMsg(**good, T_world_cam=np.eye(4, dtype=np.float32))  # cast to float64

@@ -51,6 +51,28 @@ def test_out_of_order_seqs_ack_the_floor_and_the_ranges_above_it():
     assert reg.handle(keyframe(1, 1)) == [Ack(agent_id="a", seq=3)]
 
 
+def test_feature_rows_replace_only_the_features_of_held_points():
+    reg = Registry(F)
+    reg.handle(keyframe(0, 0))
+    reg.handle(delta(1, [0, 1], 0, x=0.5))
+    reg.handle(delta(2, [2], 7))  # anchored to a keyframe still to come: waiting
+    update = SubmapDelta(agent_id="a", seq=4, point_ids=np.zeros(0, np.int64),
+                         anchor_kf_ids=np.zeros(0, np.int32), xyz_local=np.zeros((0, 3)),
+                         colors=np.zeros((0, 3), np.uint8), removed_ids=np.zeros(0, np.int64),
+                         feature_ids=np.array([1, 2, 9]), features=np.full((3, F), 2.0))
+    reg.handle(update)
+    rec = reg.agents["a"]
+    np.testing.assert_array_equal(rec.points.features, [[0] * F, [2] * F])
+    np.testing.assert_array_equal(rec.points.xyz, np.full((2, 3), 0.5))  # position kept
+    np.testing.assert_array_equal(rec.pending_points.features, [[2] * F])
+    assert rec.points.seq.tolist() == [1, 4]
+    assert reg.dropped["features of points not held"] == 1  # point 9 was never sent
+    # an older message arriving late does not undo the newer features
+    older = update.model_copy(update={"seq": 3, "features": np.full((3, F), 1.0)})
+    reg.handle(older)
+    np.testing.assert_array_equal(rec.points.features[1], [2] * F)
+
+
 def test_unknown_anchor_waits_for_its_keyframe():
     reg = Registry(F)
     reg.handle(keyframe(0, 0))
