@@ -26,7 +26,8 @@ docs/configuration.md):
   its keyframe images pulled), 2 or 3 (candidates within 1 or 2 keyframes of a verified pair
   skipped);
 - images-half, images-half-spacing3: after with keyframe images pulled at half the processed
-  width and height (``loop.image_scale`` 0.5), the second also with ``loop.spacing`` 3.
+  width and height (``loop.image_scale`` 0.5), the second also with ``loop.spacing`` 3;
+- no-feature-rows: after with every point resent whole (``link.feature_rows`` off).
 
 Per variant and agent: bytes per second of sensor time per message type (the server's
 counters in metrics.json), the joint se3 ATE of both global trajectories, the merge time, and
@@ -57,6 +58,7 @@ VARIANTS = {
         "link.feature_codec=float16",
         "link.decoder_delta=false",
         "link.zstd_level=0",
+        "link.feature_rows=false",
     ],
     "after": [],
     "no-decoder-delta": ["link.decoder_delta=false"],
@@ -67,6 +69,7 @@ VARIANTS = {
     "spacing3": ["loop.spacing=3"],
     "images-half": ["loop.image_scale=0.5"],
     "images-half-spacing3": ["loop.image_scale=0.5", "loop.spacing=3"],
+    "no-feature-rows": ["link.feature_rows=false"],
 }
 
 
