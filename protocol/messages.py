@@ -1,4 +1,5 @@
-"""Messages an agent sends: keyframes, sub-map deltas, decoder weights, frame poses, images.
+"""Messages an agent sends: keyframes, sub-map deltas, decoder weights, frame poses (and,
+re-exported, the keyframe image messages of `cpslam.protocol.image_messages`).
 
 Every array field names its dtype and shape in its `Annotated` type (see `ArraySpec`);
 every field's docstring gives units and frames and is what docs/protocol.md documents.
@@ -6,11 +7,10 @@ every field's docstring gives units and frames and is what docs/protocol.md docu
 
 from __future__ import annotations
 
-from typing import Annotated, Any, Literal
+from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import Field, model_serializer, model_validator
-from pydantic_core import core_schema
+from pydantic import Field, model_validator
 
 from cpslam.protocol.arrays import ArraySpec
 from cpslam.protocol.base import (
@@ -26,7 +26,7 @@ from cpslam.protocol.base import (
     Seq,
     Tensors,
 )
-from cpslam.protocol.images import image_from_wire, image_to_wire
+from cpslam.protocol.image_messages import KeyframeImage, KeyframeImageRequest
 from cpslam.protocol.quant import dequantise_rows
 
 __all__ = [
@@ -42,7 +42,6 @@ __all__ = [
 MB = 1 << 20
 MAX_DESCRIPTOR = 65536
 MAX_FEATURE_DIM = 1024
-MAX_IMAGE_SIDE = 4096
 
 Ids = Annotated[np.ndarray, ArraySpec("int64", ("N",))]
 KfIds = Annotated[np.ndarray, ArraySpec("int32", ("N",))]
@@ -331,138 +330,3 @@ class FramePoses(Message):
         if n and (self.frame_indices.min() < 0 or self.kf_ids.min() < 0):
             raise ValueError("frame_indices/kf_ids: must be >= 0")
         return self
-
-
-class KeyframeImageRequest(Message):
-    """The server's query for a keyframe's images (payload of a get on the image key)."""
-
-    max_bytes = 4096
-    type: Literal["keyframe_image_request"] = "keyframe_image_request"
-    agent_id: Id
-    """Agent that owns the keyframe."""
-    kf_id: KfId
-    """Keyframe wanted."""
-    want_rgb: bool = True
-    """Send the colour image."""
-    want_depth: bool = True
-    """Send the depth image."""
-    scale: float = Field(default=1.0, ge=0.1, le=1.0)
-    """Fraction of the processed frame's width and height wanted (1: the processed size)."""
-
-    @model_validator(mode="after")
-    def _check(self) -> KeyframeImageRequest:
-        if not (self.want_rgb or self.want_depth):
-            raise ValueError("want_rgb/want_depth: at least one must be true")
-        return self
-
-
-class _Image:
-    """Annotation for an image field: decoded from {"codec", "data"} with the declared size."""
-
-    def __init__(self, kind: Literal["rgb", "depth"]) -> None:
-        self.kind = kind
-        self.spec = (
-            ArraySpec("uint8", ("H", "W", 3)) if kind == "rgb" else ArraySpec("uint16", ("H", "W"))
-        )
-
-    def __get_pydantic_core_schema__(self, source: Any, handler: Any) -> core_schema.CoreSchema:
-        return core_schema.with_info_plain_validator_function(self.validate)
-
-    def validate(self, value: Any, info: core_schema.ValidationInfo) -> np.ndarray:
-        if isinstance(value, dict) and "codec" in value:
-            if "width" not in info.data or "height" not in info.data:
-                raise ValueError("cannot check the image without a valid width and height")
-            declared = info.data.get("rgb_codec")
-            if self.kind == "rgb" and value["codec"] != declared:
-                raise ValueError(
-                    f"codec {value['codec']!r:.20} differs from rgb_codec {declared!r}"
-                )
-            return image_from_wire(value, self.kind, info.data["width"], info.data["height"])
-        if isinstance(value, dict):
-            raise ValueError("expected an image map with keys codec/data")
-        return self.spec.validate(value)
-
-
-class KeyframeImage(Message):
-    """A keyframe's colour and/or depth image with its intrinsics (reply to the request).
-
-    Colour is RGB in memory and PNG (lossless) or JPEG on the wire; depth is uint16 in units
-    of 1/depth_scale metres (0 = invalid) and always PNG. `from_metres` and `depth_metres`
-    convert to and from float32 metres.
-    """
-
-    max_bytes = 8 * MB
-    type: Literal["keyframe_image"] = "keyframe_image"
-    agent_id: Id
-    """Agent that owns the keyframe."""
-    kf_id: KfId
-    """Keyframe id."""
-    fx: float = Field(gt=0)
-    """Focal length along x (pixels)."""
-    fy: float = Field(gt=0)
-    """Focal length along y (pixels)."""
-    cx: float
-    """Principal point x (pixels)."""
-    cy: float
-    """Principal point y (pixels)."""
-    width: int = Field(ge=1, le=MAX_IMAGE_SIDE)
-    """Image width W (pixels)."""
-    height: int = Field(ge=1, le=MAX_IMAGE_SIDE)
-    """Image height H (pixels)."""
-    depth_scale: float = Field(default=1000.0, gt=0)
-    """Depth units per metre (1000 = millimetres)."""
-    rgb_codec: Literal["png", "jpeg"] = "jpeg"
-    """How `rgb` is compressed on the wire."""
-    jpeg_quality: int = Field(default=90, ge=1, le=100)
-    """JPEG quality used when rgb_codec is jpeg."""
-    rgb: Annotated[np.ndarray, _Image("rgb")] | None = None
-    """Colour image, RGB (uint8 [H, W, 3]); None when not requested."""
-    depth: Annotated[np.ndarray, _Image("depth")] | None = None
-    """Depth image in 1/depth_scale metres, 0 = invalid (uint16 [H, W]); None when not requested."""
-
-    @model_validator(mode="after")
-    def _check(self) -> KeyframeImage:
-        if self.rgb is None and self.depth is None:
-            raise ValueError("rgb/depth: at least one image is required")
-        for name, image in (("rgb", self.rgb), ("depth", self.depth)):
-            if image is not None and image.shape[:2] != (self.height, self.width):
-                raise ValueError(
-                    f"{name}: shape {list(image.shape)} does not match height x width "
-                    f"{self.height} x {self.width}"
-                )
-        return self
-
-    @model_serializer(mode="wrap")
-    def _serialize(self, handler: Any) -> dict[str, Any]:
-        wire = handler(self)
-        if self.rgb is not None:
-            wire["rgb"] = image_to_wire(self.rgb, "rgb", self.rgb_codec, self.jpeg_quality)
-        if self.depth is not None:
-            wire["depth"] = image_to_wire(self.depth, "depth")
-        return wire
-
-    @classmethod
-    def from_metres(
-        cls,
-        depth_m: np.ndarray | None,
-        depth_scale: float = 1000.0,
-        **fields: Any,
-    ) -> KeyframeImage:
-        """Build from float32 metric depth (0 or non-finite = invalid); other fields as kwargs.
-
-        Depths beyond the uint16 range (65535 / depth_scale m) become 0 (invalid) rather
-        than being clipped to a wrong value.
-        """
-        depth = None
-        if depth_m is not None:
-            scaled = np.nan_to_num(np.asarray(depth_m, np.float64) * depth_scale, nan=0.0)
-            scaled = np.rint(scaled)
-            scaled[(scaled < 0) | (scaled > np.iinfo(np.uint16).max)] = 0
-            depth = scaled.astype(np.uint16)
-        return cls(depth=depth, depth_scale=depth_scale, **fields)
-
-    def depth_metres(self) -> np.ndarray | None:
-        """Depth as float32 metres [H, W] (0 = invalid), or None if absent."""
-        if self.depth is None:
-            return None
-        return (self.depth.astype(np.float64) / self.depth_scale).astype(np.float32)
