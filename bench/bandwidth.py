@@ -27,7 +27,9 @@ docs/configuration.md):
   skipped);
 - images-half, images-half-spacing3: after with keyframe images pulled at half the processed
   width and height (``loop.image_scale`` 0.5), the second also with ``loop.spacing`` 3;
-- no-feature-rows: after with every point resent whole (``link.feature_rows`` off).
+- no-feature-rows: after with every point resent whole (``link.feature_rows`` off);
+  images-half-no-feature-rows: both;
+- images-0.4: after with keyframe images at 0.4 of the processed size.
 
 Per variant and agent: bytes per second of sensor time per message type (the server's
 counters in metrics.json), the joint se3 ATE of both global trajectories, the merge time, and
@@ -70,6 +72,8 @@ VARIANTS = {
     "images-half": ["loop.image_scale=0.5"],
     "images-half-spacing3": ["loop.image_scale=0.5", "loop.spacing=3"],
     "no-feature-rows": ["link.feature_rows=false"],
+    "images-half-no-feature-rows": ["loop.image_scale=0.5", "link.feature_rows=false"],
+    "images-0.4": ["loop.image_scale=0.4"],
 }
 
 
