@@ -37,7 +37,7 @@ _QMAX = 127
 def quantise_rows(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(q int8 like `x`, scale float32 [rows]) with ``x ~ q * scale`` row by row (axis 0)."""
     x = np.asarray(x, np.float32)
-    rows = x.reshape(x.shape[0] if x.ndim >= 2 else 1, -1)
+    rows = x.reshape(_rows_shape(x.shape))
     if not np.isfinite(rows).all():
         raise ValueError("quantise_rows: values must be finite")
     peak = np.abs(rows).max(axis=1) if rows.shape[1] else np.zeros(rows.shape[0], np.float32)
@@ -49,15 +49,21 @@ def quantise_rows(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def dequantise_rows(q: np.ndarray, scale: np.ndarray) -> np.ndarray:
     """float32 ``q * scale`` (the inverse of `quantise_rows`, up to its rounding)."""
-    # explicit width: -1 cannot be inferred for zero rows
-    shape = (q.shape[0], math.prod(q.shape[1:])) if q.ndim >= 2 else (1, q.size)
-    rows = q.reshape(shape).astype(np.float32)
+    rows = q.reshape(_rows_shape(q.shape)).astype(np.float32)
     if scale.shape != (rows.shape[0],):
         raise ValueError(
             f"dequantise_rows: {rows.shape[0]} rows need {rows.shape[0]} scales, "
             f"got shape {list(scale.shape)}"
         )
     return (rows * scale.astype(np.float32)[:, None]).reshape(q.shape)
+
+
+def _rows_shape(shape: tuple[int, ...]) -> tuple[int, int]:
+    """(rows, width) of an array quantised row by row: axis 0 for 2-D and up, else one row
+    (explicit: reshape cannot infer a width for zero rows)."""
+    if len(shape) >= 2:
+        return shape[0], math.prod(shape[1:])
+    return 1, math.prod(shape)
 
 
 def add_delta(base: dict[str, np.ndarray], delta: dict[str, np.ndarray]) -> dict[str, np.ndarray]:

@@ -182,6 +182,16 @@ def test_the_servers_copy_is_the_agents_mirror_with_feature_rows() -> None:
     np.testing.assert_array_equal(xyz[order], pm.xyz_local.detach().numpy()[np.argsort(own)])
 
 
+def test_a_delta_of_removals_only_goes_out_with_int8_features() -> None:
+    link = _link(frames_every=100, rounds=100, feature_codec="int8", feature_threshold=0.1)
+    _run(link, 0, 1)
+    gone = int(link.odometry.point_map.point_id[0])
+    link.odometry.point_map.remove([gone])
+    delta = protocol.decode(protocol.encode(link._submap_delta()), expected=SubmapDelta)
+    assert delta.removed_ids.tolist() == [gone] and delta.point_ids.size == 0
+    assert delta.feature_values().shape == (0, link.odometry.point_map.feature_dim)
+
+
 def test_outbox_trimmed_by_acks(warm) -> None:
     link = _link()
     msgs = _run(link, 0, 1)
