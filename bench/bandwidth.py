@@ -105,6 +105,7 @@ def main() -> None:
         **bench_header("bandwidth", sys.argv),
         "preset": args.preset,
         "frames": args.frames,
+        "seed": args.seed,
         "scene": "7-Scenes kitchen" if args.real else args.scene,
         "scene_seed": None if args.real else args.scene_seed,
         "real_split": args.real_split if args.real else None,
