@@ -279,9 +279,7 @@ class AgentLink:
         # feature rows: the whole points' first, then those going alone
         order = np.concatenate((np.nonzero(whole)[0], np.nonzero(alone)[0]))
         fields, received = encode_features(feats[order], self.mirror.codec)
-        in_mask_order = np.empty_like(received)
-        in_mask_order[np.argsort(np.argsort(order))] = received
-        self.mirror.commit(ids, send, in_mask_order, self._seq, alone)
+        self.mirror.commit(ids, send, received[np.argsort(order)], self._seq, alone)
         r = rows[torch.from_numpy(np.nonzero(whole)[0]).to(rows.device)]
         return self._stamp(SubmapDelta(
             agent_id=self.agent_id, seq=0, point_ids=ids[whole],
