@@ -29,7 +29,9 @@ docs/configuration.md):
   width and height (``loop.image_scale`` 0.5), the second also with ``loop.spacing`` 3;
 - no-feature-rows: after with every point resent whole (``link.feature_rows`` off);
   images-half-no-feature-rows: both;
-- images-0.4: after with keyframe images at 0.4 of the processed size.
+- images-0.4: after with keyframe images at 0.4 of the processed size;
+- no-refine, images-half-no-refine: without the rendering refinement of loop poses
+  (``loop.refine`` off), at full and at half image size.
 
 Per variant and agent: bytes per second of sensor time per message type (the server's
 counters in metrics.json), the joint se3 ATE of both global trajectories, the merge time, and
@@ -74,6 +76,8 @@ VARIANTS = {
     "no-feature-rows": ["link.feature_rows=false"],
     "images-half-no-feature-rows": ["loop.image_scale=0.5", "link.feature_rows=false"],
     "images-0.4": ["loop.image_scale=0.4"],
+    "no-refine": ["loop.refine=false"],
+    "images-half-no-refine": ["loop.image_scale=0.5", "loop.refine=false"],
 }
 
 
