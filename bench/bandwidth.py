@@ -31,7 +31,9 @@ docs/configuration.md):
   images-half-no-feature-rows: both;
 - images-0.4: after with keyframe images at 0.4 of the processed size;
 - no-refine, images-half-no-refine: without the rendering refinement of loop poses
-  (``loop.refine`` off), at full and at half image size.
+  (``loop.refine`` off), at full and at half image size;
+- no-finetune, images-half-no-finetune: without the server's fine-tunes on keyframe images
+  (``federation.finetune_iters`` and ``refinement.finetune_iters`` 0), at full and half size.
 
 Per variant and agent: bytes per second of sensor time per message type (the server's
 counters in metrics.json), the joint se3 ATE of both global trajectories, the merge time, and
@@ -78,6 +80,9 @@ VARIANTS = {
     "images-0.4": ["loop.image_scale=0.4"],
     "no-refine": ["loop.refine=false"],
     "images-half-no-refine": ["loop.image_scale=0.5", "loop.refine=false"],
+    "no-finetune": ["federation.finetune_iters=0", "refinement.finetune_iters=0"],
+    "images-half-no-finetune": ["loop.image_scale=0.5", "federation.finetune_iters=0",
+                                "refinement.finetune_iters=0"],
 }
 
 
