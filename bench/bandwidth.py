@@ -33,7 +33,9 @@ docs/configuration.md):
 - no-refine, images-half-no-refine: without the rendering refinement of loop poses
   (``loop.refine`` off), at full and at half image size;
 - no-finetune, images-half-no-finetune: without the server's fine-tunes on keyframe images
-  (``federation.finetune_iters`` and ``refinement.finetune_iters`` 0), at full and half size.
+  (``federation.finetune_iters`` and ``refinement.finetune_iters`` 0), at full and half size;
+- images-half-info2: half size with loop edges weighted 0.2 instead of 0.09
+  (``loop.information_scale``).
 
 Per variant and agent: bytes per second of sensor time per message type (the server's
 counters in metrics.json), the joint se3 ATE of both global trajectories, the merge time, and
@@ -83,6 +85,7 @@ VARIANTS = {
     "no-finetune": ["federation.finetune_iters=0", "refinement.finetune_iters=0"],
     "images-half-no-finetune": ["loop.image_scale=0.5", "federation.finetune_iters=0",
                                 "refinement.finetune_iters=0"],
+    "images-half-info2": ["loop.image_scale=0.5", "loop.information_scale=0.2"],
 }
 
 
