@@ -83,7 +83,8 @@ class PointTable:
         held = np.zeros(len(ids), bool)
         if len(ids) == 0 or len(self) == 0:
             return held
-        pos = np.minimum(np.searchsorted(self.ids, ids), len(self) - 1)  # the table is sorted
+        self._sort()  # a loaded state may not be
+        pos = np.minimum(np.searchsorted(self.ids, ids), len(self) - 1)
         held = self.ids[pos] == ids
         write = held & (self.seq[pos] <= seq)
         if write.any():
