@@ -121,14 +121,28 @@ def check_points(
     ):
         if ids.size and ids.min() < 0:
             raise ValueError(f"{name}: ids must be >= 0")
+    ordered = _sorted_unique(point_ids, "point_ids")
+    if _any_in(ordered, removed_ids):
+        raise ValueError("removed_ids: an id cannot be both updated and removed")
+
+
+def _sorted_unique(ids: np.ndarray, name: str) -> np.ndarray:
+    """`ids` sorted, once checked to be >= 0 and unique (ValueError naming `name`)."""
+    if ids.size and ids.min() < 0:
+        raise ValueError(f"{name}: ids must be >= 0")
     # sort-based: numpy's hash-based unique is several times slower on 1e5+ ids
-    ordered = np.sort(point_ids)
+    ordered = np.sort(ids)
     if (ordered[1:] == ordered[:-1]).any():
-        raise ValueError("point_ids: ids must be unique")
-    if removed_ids.size and n:
-        pos = np.minimum(np.searchsorted(ordered, removed_ids), n - 1)
-        if (ordered[pos] == removed_ids).any():
-            raise ValueError("removed_ids: an id cannot be both updated and removed")
+        raise ValueError(f"{name}: ids must be unique")
+    return ordered
+
+
+def _any_in(ordered: np.ndarray, ids: np.ndarray) -> bool:
+    """Whether any of `ids` is among the sorted ids `ordered`."""
+    if not (ids.size and ordered.size):
+        return False
+    pos = np.minimum(np.searchsorted(ordered, ids), ordered.size - 1)
+    return bool((ordered[pos] == ids).any())
 
 
 class SubmapDelta(Message):
@@ -197,12 +211,8 @@ class SubmapDelta(Message):
             self.removed_ids,
         )
         if u:
-            if self.feature_ids.min() < 0:
-                raise ValueError("feature_ids: ids must be >= 0")
-            ordered = np.sort(self.feature_ids)
-            if (ordered[1:] == ordered[:-1]).any():
-                raise ValueError("feature_ids: ids must be unique")
-            if np.isin(ordered, self.point_ids).any() or np.isin(ordered, self.removed_ids).any():
+            ordered = _sorted_unique(self.feature_ids, "feature_ids")
+            if _any_in(ordered, self.point_ids) or _any_in(ordered, self.removed_ids):
                 raise ValueError("feature_ids: an id cannot also be in point_ids or removed_ids")
         return self
 
