@@ -22,21 +22,30 @@ import numpy as np
 
 from cpslam.protocol.quant import add_delta, dequantise_rows, quantise_rows
 
-__all__ = ["DecoderBase", "SubmapMirror", "encode_features"]
+__all__ = ["DecoderBase", "SubmapMirror", "encode_features", "feature_levels"]
 
 FeatureCodec = Literal["float16", "int8"]
 _F16_MAX = float(np.finfo(np.float16).max)
 
 
-def encode_features(features: np.ndarray, codec: FeatureCodec) -> tuple[dict[str, Any], np.ndarray]:
-    """(SubmapDelta feature fields, the float32 values the receiver decodes from them)."""
+def encode_features(features: np.ndarray, codec: FeatureCodec,
+                    bits: int = 8) -> tuple[dict[str, Any], np.ndarray]:
+    """(SubmapDelta feature fields, the float32 values the receiver decodes from them); int8
+    codes use `bits` bits (levels +-(2^(bits-1) - 1)), which zstd packs into about that many."""
     if codec == "float16":
         f16 = np.asarray(features, np.float32).astype(np.float16)
         return {"features": f16}, f16.astype(np.float32)
     if codec == "int8":
-        q, scale = quantise_rows(np.asarray(features, np.float32))
+        q, scale = quantise_rows(np.asarray(features, np.float32), feature_levels(bits))
         return {"features_int8": q, "feature_scales": scale}, dequantise_rows(q, scale)
     raise ValueError(f"feature codec: expected 'float16' or 'int8', got {codec!r}")
+
+
+def feature_levels(bits: int) -> int:
+    """Largest int8 code magnitude of `bits`-bit feature codes (2-8 bits)."""
+    if not 2 <= bits <= 8:
+        raise ValueError(f"feature bits must be in 2..8, got {bits}")
+    return (1 << (bits - 1)) - 1
 
 
 class SubmapMirror:
@@ -47,16 +56,19 @@ class SubmapMirror:
         threshold: relative change (of the copy's largest magnitude) that makes a known point
             worth resending; 0 sends every change.
         codec: how features travel ("float16" or "int8").
+        bits: bits of an int8 feature code (`encode_features`).
     """
 
     def __init__(
-        self, feature_dim: int, threshold: float = 0.0, codec: FeatureCodec = "float16"
+        self, feature_dim: int, threshold: float = 0.0, codec: FeatureCodec = "float16",
+        bits: int = 8,
     ) -> None:
         if threshold < 0:
             raise ValueError(f"SubmapMirror: threshold must be >= 0, got {threshold}")
         if codec not in ("float16", "int8"):
             raise ValueError(f"SubmapMirror: codec must be 'float16' or 'int8', got {codec!r}")
-        self.threshold, self.codec = float(threshold), codec
+        feature_levels(bits)  # checks the range
+        self.threshold, self.codec, self.bits = float(threshold), codec, int(bits)
         self.ids = np.zeros(0, np.int64)  # sorted
         self.features = np.zeros((0, feature_dim), np.float32)
         # seq of the message that carried each point's full row (position, anchor, colour)

@@ -90,8 +90,8 @@ class AgentLink:
         update_window: a `ServerUpdate` more than this many seqs above the last one applied
             is ignored with a warning (forged or corrupt: it would mask every real one).
         submap_every_mappings: a sub-map delta goes every this many mapping calls.
-        feature_threshold, feature_codec: which known points are resent, and how features
-            travel (`SubmapMirror`).
+        feature_threshold, feature_codec, feature_bits: which known points are resent, and
+            how features travel (`SubmapMirror`).
         feature_rows: a known point the server acknowledged goes with its features alone.
         decoder_delta: send decoder weights as an int8 delta against the last group decoder.
         depth_step_mm_per_m2: keyframe depth goes in steps of this times depth² (`quantise_depth`).
@@ -113,6 +113,7 @@ class AgentLink:
         submap_every_mappings: int = 1,
         feature_threshold: float = 0.0,
         feature_codec: str = "float16",
+        feature_bits: int = 8,
         feature_rows: bool = False,
         decoder_delta: bool = False,
         depth_step_mm_per_m2: float = 0.0,
@@ -148,7 +149,7 @@ class AgentLink:
         """State id of the server this stream goes to (`cpslam.agent.rebase`)."""
         self._pending_frames: list[tuple[int, float, int, np.ndarray]] = []
         self.mirror = SubmapMirror(odometry.point_map.feature_dim, feature_threshold,
-                                   feature_codec)  # type: ignore[arg-type]
+                                   feature_codec, feature_bits)  # type: ignore[arg-type]
         self.submap_every_mappings = submap_every_mappings
         self.feature_rows = feature_rows
         self.decoder_delta = decoder_delta
@@ -278,7 +279,8 @@ class AgentLink:
         whole = send & ~alone
         # feature rows: the whole points' first, then those going alone
         order = np.concatenate((np.nonzero(whole)[0], np.nonzero(alone)[0]))
-        fields, received = encode_features(feats[order], self.mirror.codec)
+        fields, received = encode_features(feats[order], self.mirror.codec,
+                                            self.mirror.bits)
         self.mirror.commit(ids, send, received[np.argsort(order)], self._seq, alone)
         r = rows[torch.from_numpy(np.nonzero(whole)[0]).to(rows.device)]
         return self._stamp(SubmapDelta(

@@ -103,6 +103,7 @@ class AgentNode:
                               feature_threshold=cfg.link.feature_threshold,
                               feature_rows=cfg.link.feature_rows,
                               feature_codec=cfg.link.feature_codec,
+                              feature_bits=cfg.link.feature_bits,
                               decoder_delta=cfg.link.decoder_delta,
                               jpeg_quality=cfg.link.jpeg_quality,
                               depth_step_mm_per_m2=cfg.link.depth_step_mm_per_m2)

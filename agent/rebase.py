@@ -72,7 +72,7 @@ def _reset(link: AgentLink, incarnation: int) -> None:
     link._decoders_waiting = {}
     link.decoder_base = DecoderBase()
     link.mirror = SubmapMirror(link.mirror.features.shape[1], link.mirror.threshold,
-                               link.mirror.codec)
+                               link.mirror.codec, link.mirror.bits)
     link._submap_mappings = 0
 
 

@@ -86,6 +86,13 @@ VARIANTS = {
     "images-half-no-finetune": ["loop.image_scale=0.5", "federation.finetune_iters=0",
                                 "refinement.finetune_iters=0"],
     "images-half-info2": ["loop.image_scale=0.5", "loop.information_scale=0.2"],
+    "bits6": ["link.feature_bits=6"],
+    "bits5": ["link.feature_bits=5"],
+    "bits4": ["link.feature_bits=4"],
+    "jpeg80": ["link.jpeg_quality=80"],
+    "images-half-bits5": ["loop.image_scale=0.5", "link.feature_bits=5"],
+    "images-half-jpeg80-bits5": ["loop.image_scale=0.5", "link.jpeg_quality=80",
+                                 "link.feature_bits=5"],
 }
 
 

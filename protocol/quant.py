@@ -34,16 +34,20 @@ ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
 _QMAX = 127
 
 
-def quantise_rows(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(q int8 like `x`, scale float32 [rows]) with ``x ~ q * scale`` row by row (axis 0)."""
+def quantise_rows(x: np.ndarray, levels: int = _QMAX) -> tuple[np.ndarray, np.ndarray]:
+    """(q int8 like `x`, scale float32 [rows]) with ``x ~ q * scale`` row by row (axis 0) and
+    ``|q| <= levels`` (1-127): fewer levels leave codes that zstd packs into fewer bits, each
+    element then off by at most max|row| / (2 levels)."""
+    if not 1 <= levels <= _QMAX:
+        raise ValueError(f"quantise_rows: levels must be in 1..{_QMAX}, got {levels}")
     x = np.asarray(x, np.float32)
     rows = x.reshape(_rows_shape(x.shape))
     if not np.isfinite(rows).all():
         raise ValueError("quantise_rows: values must be finite")
     peak = np.abs(rows).max(axis=1) if rows.shape[1] else np.zeros(rows.shape[0], np.float32)
-    scale = (peak / _QMAX).astype(np.float32)
+    scale = (peak / levels).astype(np.float32)
     safe = np.where(scale > 0, scale, 1.0)[:, None]
-    q = np.clip(np.rint(rows / safe), -_QMAX, _QMAX).astype(np.int8)
+    q = np.clip(np.rint(rows / safe), -levels, levels).astype(np.int8)
     return q.reshape(x.shape), scale
 
 

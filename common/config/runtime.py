@@ -135,6 +135,8 @@ class LinkConfig(Section):
     """Resend a point the server acknowledged as its features alone, without position or colour."""
     feature_codec: Literal["float16", "int8"] = "int8"
     """Sub-map features on the wire: float16, or int8 with one scale per point."""
+    feature_bits: int = Field(default=8, ge=2, le=8)
+    """Bits of an int8 feature code (levels +-(2^(bits-1)-1)); zstd packs fewer bits smaller."""
     decoder_delta: bool = True
     """Send decoder weights as int8 deltas against the last weights the server agreed on."""
     zstd_level: int = Field(default=3, ge=0, le=22)

@@ -149,19 +149,21 @@ def test_acknowledged_points_go_back_as_features_alone() -> None:
     np.testing.assert_array_equal(link.mirror.features[pos], delta.updated_feature_values())
 
 
-def test_the_servers_copy_is_the_agents_mirror_with_feature_rows() -> None:
+@pytest.mark.parametrize("bits", [8, 5])
+def test_the_servers_copy_is_the_agents_mirror_with_feature_rows(bits: int) -> None:
     from cpslam.server.registry import Registry
 
     link = _link(frames_every=100, rounds=100, feature_rows=True, feature_codec="int8",
-                 feature_threshold=0.1)
+                 feature_threshold=0.1, feature_bits=bits)
     pm = link.odometry.point_map
     registry = Registry(pm.feature_dim)
-    feature_rows = 0
+    feature_rows, peak = 0, 0
     for i in range(12):
         for msg in _run(link, i, i + 1):
             msg = protocol.decode(protocol.encode(msg))
             if isinstance(msg, SubmapDelta):
                 feature_rows += msg.feature_ids.size
+                peak = max(peak, int(np.abs(msg.features_int8.astype(np.int32)).max(initial=0)))
             for ack in registry.handle(msg):
                 link.on_ack(ack)
         # the field keeps learning features of points it has: some of them move enough
@@ -169,6 +171,7 @@ def test_the_servers_copy_is_the_agents_mirror_with_feature_rows() -> None:
         pm.set_features(rows, pm.features.detach()[rows] * 1.5 + 0.1)
     link.on_ack(registry.handle(link._submap_delta())[0])
     assert feature_rows > 0
+    assert peak == 2 ** (bits - 1) - 1  # every row's largest element takes the top code
     rec = registry.agents["a0"]
     tables = [t for t in (rec.points, rec.pending_points) if len(t)]
     ids = np.concatenate([t.ids for t in tables])
