@@ -45,6 +45,8 @@ from cpslam.agent.mapper import Mapper, View
 from cpslam.agent.motion import MOTION_MODELS, motion_guesses
 from cpslam.agent.recovery import Frame, Recovery
 from cpslam.agent.schedule import MapJob, MapOutcome, MapSchedule, MapState, run_map_job
+from cpslam.agent.snapshot import FORMAT_VERSION as FORMAT_VERSION  # re-exported
+from cpslam.agent.snapshot import odometry_state, restore_odometry
 from cpslam.common.camera import Intrinsics
 from cpslam.common.datasets import RGBDFrame
 from cpslam.common.field import Decoders, FeatureCNN, NeuralPointMap
@@ -62,8 +64,6 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 __all__ = ["FrameResult", "Odometry"]
-
-FORMAT_VERSION = 1
 
 
 class Odometry:
@@ -444,57 +444,13 @@ class Odometry:
 
     def state_dict(self) -> dict:
         """Everything needed to render or resume (plain tensors, numbers, strings, lists and
-        dicts: loadable with torch.load(weights_only=True)); waits for the mapping thread."""
-        self.drain()
-        return {
-            "format_version": FORMAT_VERSION,
-            "agent_id": self.agent_id,
-            "seed": self.seed,
-            "intrinsics": self.intrinsics.to_dict(),
-            "point_map": self.maps.work.point_map.state_dict(),
-            "decoders": {k: v.detach().cpu().clone() for k, v in
-                         self.maps.work.decoders.state_dict().items()},
-            "keyframes": self.keyframes.state_dict(),
-            **self.frames.state_dict(),
-            "n_frames": self.n_frames,
-            "fused": self.fused,
-            "last_keyframe_count": -1 if self._last_kf_count is None else self._last_kf_count,
-            "last_mapping_count": -1 if self._last_map_count is None else self._last_map_count,
-            **({"recovery": self.recovery.state_dict()} if self.recovery is not None else {}),
-        }
+        dicts: loadable with torch.load(weights_only=True)); waits for the mapping thread
+        (`cpslam.agent.snapshot`)."""
+        return odometry_state(self)
 
     def load_state_dict(self, state: dict) -> None:
         """Restore what `state_dict` wrote (same config and processing resolution)."""
-        if int(state.get("format_version", -1)) != FORMAT_VERSION:
-            raise ValueError(f"odometry state: format_version {state.get('format_version')}, "
-                             f"expected {FORMAT_VERSION}")
-        intrinsics = Intrinsics.from_dict(state["intrinsics"])
-        if intrinsics != self.intrinsics:
-            raise ValueError(f"odometry state: saved at {intrinsics}, this odometry works at "
-                             f"{self.intrinsics}")
-        self.drain()
-        self.maps.work.point_map.load_state_dict(state["point_map"],
-                                                 source="odometry state point_map")
-        self.maps.work.decoders.load_state_dict(state["decoders"])
-        self.maps.republish()
-        self.keyframes.load_state_dict(state["keyframes"], source="odometry state keyframes")
-        self.frames.load_state_dict(state, int(state["n_frames"]))
-        self.seed = int(state["seed"])
-        self.agent_id = int(state["agent_id"])
-        self.fused = bool(state["fused"])
-        n = len(self.frames)
-        # States written before the counters existed made both on multiples of the period.
-        last_kf = int(state.get("last_keyframe_count", (n - 1) // self.kf_every * self.kf_every))
-        last_map = int(state.get("last_mapping_count",
-                                 (n - 1) // self.map_every * self.map_every))
-        self._last_kf_count = None if last_kf < 0 or n == 0 else last_kf
-        self._last_map_count = None if last_map < 0 or n == 0 else last_map
-        self._reference = None
-        latest = self.keyframes.latest
-        if latest is not None and len(latest.rgb_png):  # the comparison resumes at once
-            self._set_reference(latest.kf_id)
-        if self.recovery is not None and "recovery" in state:
-            self.recovery.load_state_dict(state["recovery"])
+        restore_odometry(self, state)
 
 
 def _split_threads() -> int:
