@@ -40,8 +40,9 @@ import numpy as np
 import torch
 
 from cpslam.agent.frames import FrameLog, FrameResult
+from cpslam.agent.jobs import mapping_job, refit
 from cpslam.agent.keyframes import KeyframeStore
-from cpslam.agent.mapper import Mapper, View
+from cpslam.agent.mapper import Mapper
 from cpslam.agent.motion import MOTION_MODELS, motion_guesses
 from cpslam.agent.recovery import Frame, Recovery
 from cpslam.agent.schedule import MapJob, MapOutcome, MapSchedule, MapState, run_map_job
@@ -186,7 +187,7 @@ class Odometry:
         refit_steps, refit_time = 0, 0.0
         if self.fused:
             finished += self._drain_worker()
-            refit_steps, refit_time = self._refit(generator)
+            refit_steps, refit_time = refit(self, generator)
         if count > 0 and len(self.maps.published.point_map) == 0:
             self.maps.wait_for_map()  # nothing to track against before the first publish
         state = self.maps.published
@@ -215,7 +216,7 @@ class Odometry:
         self.frames.append(frame.timestamp, frame.index, T_world_cam, healthy)
         if mapping or kf_id is not None:
             t1 = time.perf_counter()
-            job = self._job(current, T_world_cam, kf_id, mapping, count, generator)
+            job = mapping_job(self, current, T_world_cam, kf_id, mapping, count, generator)
             if mapping:
                 self._last_map_count = count
             for outcome in self._recorded(self.maps.submit(job)):  # lock-step: done now
@@ -361,36 +362,6 @@ class Odometry:
             self._last_tracked, guesses["zero_motion"], self.intrinsics, self.keyframes, seed)
         return outcome.result, outcome.event
 
-    def _job(self, current: Frame, T_world_cam: np.ndarray, kf_id: int | None, optimise: bool,
-             count: int, generator: torch.Generator) -> MapJob:
-        """The mapping call of this frame: register keyframe kf_id (when made here), then,
-        with `optimise`, add points anchored to the latest keyframe and optimise on this
-        frame and its co-visible keyframes. The pose is refined with the map when
-        mapping.pose_lr > 0 and the frame is not a keyframe (a keyframe's pose anchors points
-        and enters the pose table, so it stays as tracked)."""
-        anchor = self.keyframes.latest
-        assert anchor is not None  # frame 0 is always a keyframe
-        job = MapJob(count, current.index, np.asarray(T_world_cam, np.float64), anchor.kf_id,
-                     kf_id, optimise)
-        if not optimise:
-            return job
-        if count == 0:
-            job.iters, job.n_pixels = self.iters_first, self.n_pixels_first
-            job.publish_every = self.first_publish_every
-        else:
-            job.iters = self.iters_after_fusion if self.fused else self.iters
-            job.n_pixels = self.n_pixels
-        self.fused = False
-        job.rgb, job.depth = current.rgb, current.depth
-        job.views = self._views(current.rgb_t, current.depth_t, T_world_cam,
-                                exclude=() if kf_id is None else (kf_id,))
-        job.pose_lr = self.pose_lr if kf_id is None else 0.0
-        # Lock-step continues the frame's stream after tracking; the mapping thread gets a
-        # stream of its own (tracking's draws must not depend on when mapping runs).
-        job.generator = generator if not self.maps.concurrent else torch.Generator(
-            device="cpu").manual_seed((self.seed * 1_000_003 + current.index) * 2)
-        return job
-
     def _run_job(self, job: MapJob, state: MapState,
                  checkpoint: Callable[[], None] | None) -> MapOutcome:
         return run_map_job(job, state, self.mapper, self.cnn, self.intrinsics, self.agent_id,
@@ -408,37 +379,6 @@ class Odometry:
     def _drain_worker(self) -> list[MapOutcome]:
         """Wait for the mapping thread (concurrent) and record what it finished."""
         return self._recorded(self.maps.drain())
-
-    def _refit(self, generator: torch.Generator) -> tuple[int, float]:
-        """`mapping.iters_after_fusion` steps on the last frame (at its pose, which follows
-        the server's corrections) and its co-visible keyframes; steps and seconds. The
-        mapping thread is idle (drained) when this runs."""
-        if self._last_frame is None or not len(self.frames):
-            return 0, 0.0  # nothing to fit on (resumed): the next mapping call does it
-        self.fused = False
-        rgb_t, depth_t = self._last_frame.rgb_t, self._last_frame.depth_t
-        work = self.maps.work
-        result = self.mapper.optimise(work.point_map, work.decoders,
-                                      self._views(rgb_t, depth_t, self.frames.poses[-1]),
-                                      self.iters_after_fusion, self.n_pixels, generator)
-        self.maps.republish()
-        logger.debug("re-fit after a change from the server: %d steps, loss %.4f -> %.4f",
-                     result.steps, result.loss_first, result.loss_last)
-        return result.steps, result.seconds
-
-    def _views(self, rgb_t: torch.Tensor, depth_t: torch.Tensor, T_world_cam: np.ndarray,
-               exclude: tuple[int, ...] = ()) -> list[View]:
-        """The frame and its co-visible keyframes (their stored small copies)."""
-        views = [View(rgb_t, depth_t, T_world_cam, self.intrinsics)]
-        for other in self.keyframes.covisible(T_world_cam, self.intrinsics,
-                                              self.covisible_keyframes, exclude=exclude):
-            kf = self.keyframes.get(other)
-            views.append(View(
-                torch.from_numpy(kf.rgb_small).to(self.device).float() / 255.0,
-                torch.from_numpy(kf.depth_small).to(self.device),
-                kf.T_world_cam, self.keyframes.intrinsics_small,
-            ))
-        return views
 
     # ---------------------------------------------------------------------------- save/load
 
