@@ -26,6 +26,9 @@ goes through `editing()`, which first lets every handed-over call finish.
 Ground truth (`frame.gt_pose`) is never read here. Random draws (pixels, ray jitter) come
 from a torch.Generator seeded with (run.seed, frame index), so a lock-step CPU run is
 reproducible.
+
+Parts split out for size: the frame check (`cpslam.agent.frames`), the mapping call of a frame
+and the re-fit (`cpslam.agent.jobs`), and the saved state (`cpslam.agent.snapshot`).
 """
 
 from __future__ import annotations
@@ -39,13 +42,20 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from cpslam.agent.frames import FrameLog, FrameResult
+from cpslam.agent.frames import FrameLog, FrameResult, checked_rgbd
 from cpslam.agent.jobs import mapping_job, refit
 from cpslam.agent.keyframes import KeyframeStore
 from cpslam.agent.mapper import Mapper
 from cpslam.agent.motion import MOTION_MODELS, motion_guesses
 from cpslam.agent.recovery import Frame, Recovery
-from cpslam.agent.schedule import MapJob, MapOutcome, MapSchedule, MapState, run_map_job
+from cpslam.agent.schedule import (
+    MapJob,
+    MapOutcome,
+    MapSchedule,
+    MapState,
+    run_map_job,
+    split_threads,
+)
 from cpslam.agent.snapshot import FORMAT_VERSION as FORMAT_VERSION  # re-exported
 from cpslam.agent.snapshot import odometry_state, restore_odometry
 from cpslam.common.camera import Intrinsics
@@ -165,7 +175,7 @@ class Odometry:
             recovery=Recovery.from_config(cfg.recovery, tr.iters) if cfg.recovery.enabled
             else None,
             schedule=cfg.run.schedule, max_pending_keyframes=mp.max_pending_keyframes,
-            mapping_threads=_split_threads() if cfg.run.schedule == "concurrent" else None,
+            mapping_threads=split_threads() if cfg.run.schedule == "concurrent" else None,
             first_publish_every=mp.first_publish_every,
         )
 
@@ -173,7 +183,7 @@ class Odometry:
 
     def step(self, frame: RGBDFrame) -> FrameResult:
         """Process the next frame (processed resolution) and return what happened."""
-        rgb, depth = self._check_frame(frame)
+        rgb, depth = checked_rgbd(frame, self.intrinsics, self.depth_min, self.depth_max)
         count = len(self.frames)
         generator = torch.Generator(device="cpu").manual_seed(
             self.seed * 1_000_003 + int(frame.index))
@@ -295,21 +305,6 @@ class Odometry:
 
     # ---------------------------------------------------------------------------- internals
 
-    def _check_frame(self, frame: RGBDFrame) -> tuple[np.ndarray, np.ndarray]:
-        """rgb uint8 and depth float32 clipped to [depth_min, depth_max] (0 outside)."""
-        shape = self.intrinsics.shape
-        if frame.depth.shape != shape or frame.rgb.shape != (*shape, 3):
-            raise ValueError(
-                f"Odometry.step: frame {frame.index} has rgb {frame.rgb.shape} / depth "
-                f"{frame.depth.shape}, expected {shape} (resize frames by camera.downscale "
-                f"before step)")
-        if frame.rgb.dtype != np.uint8:
-            raise ValueError(f"Odometry.step: frame {frame.index} rgb must be uint8, "
-                             f"got {frame.rgb.dtype}")
-        depth = np.asarray(frame.depth, dtype=np.float32)
-        ok = np.isfinite(depth) & (depth >= self.depth_min) & (depth <= self.depth_max)
-        return np.ascontiguousarray(frame.rgb), np.where(ok, depth, 0.0).astype(np.float32)
-
     def tracking_events(self) -> dict[str, int]:
         """Counts of the recovery: frames found suspect, recovered, lost (empty when off)."""
         if self.recovery is None:
@@ -391,12 +386,3 @@ class Odometry:
     def load_state_dict(self, state: dict) -> None:
         """Restore what `state_dict` wrote (same config and processing resolution)."""
         restore_odometry(self, state)
-
-
-def _split_threads() -> int:
-    """Torch threads of the mapping thread; the calling (tracking) thread keeps the rest, so
-    the two together use what `run.num_threads` gave the process (at least one each)."""
-    total = torch.get_num_threads()
-    mapping = max(1, total // 2)
-    torch.set_num_threads(max(1, total - mapping))
-    return mapping
