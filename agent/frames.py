@@ -1,14 +1,38 @@
-"""What the odometry keeps and reports per frame: `FrameResult` (one frame's outcome) and
-`FrameLog` (every frame's stamp, index, pose and whether it tracked, in order)."""
+"""What the odometry takes, keeps and reports per frame: `checked_rgbd` (a frame's images as
+tracking and mapping take them), `FrameResult` (one frame's outcome) and `FrameLog` (every
+frame's stamp, index, pose and whether it tracked, in order)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
-__all__ = ["FrameLog", "FrameResult"]
+if TYPE_CHECKING:
+    from cpslam.common.camera import Intrinsics
+    from cpslam.common.datasets import RGBDFrame
+
+__all__ = ["FrameLog", "FrameResult", "checked_rgbd"]
+
+
+def checked_rgbd(frame: RGBDFrame, intrinsics: Intrinsics, depth_min: float,
+                 depth_max: float) -> tuple[np.ndarray, np.ndarray]:
+    """rgb uint8 and depth float32 clipped to [depth_min, depth_max] (0 outside), after
+    checking the frame has the size of `intrinsics` (`Odometry.step` never resizes)."""
+    shape = intrinsics.shape
+    if frame.depth.shape != shape or frame.rgb.shape != (*shape, 3):
+        raise ValueError(
+            f"Odometry.step: frame {frame.index} has rgb {frame.rgb.shape} / depth "
+            f"{frame.depth.shape}, expected {shape} (resize frames by camera.downscale "
+            f"before step)")
+    if frame.rgb.dtype != np.uint8:
+        raise ValueError(f"Odometry.step: frame {frame.index} rgb must be uint8, "
+                         f"got {frame.rgb.dtype}")
+    depth = np.asarray(frame.depth, dtype=np.float32)
+    ok = np.isfinite(depth) & (depth >= depth_min) & (depth <= depth_max)
+    return np.ascontiguousarray(frame.rgb), np.where(ok, depth, 0.0).astype(np.float32)
 
 
 @dataclass

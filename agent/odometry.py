@@ -26,6 +26,9 @@ goes through `editing()`, which first lets every handed-over call finish.
 Ground truth (`frame.gt_pose`) is never read here. Random draws (pixels, ray jitter) come
 from a torch.Generator seeded with (run.seed, frame index), so a lock-step CPU run is
 reproducible.
+
+Parts split out for size: the frame check (`cpslam.agent.frames`), the mapping call of a frame
+and the re-fit (`cpslam.agent.jobs`), and the saved state (`cpslam.agent.snapshot`).
 """
 
 from __future__ import annotations
@@ -39,12 +42,22 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from cpslam.agent.frames import FrameLog, FrameResult
+from cpslam.agent.frames import FrameLog, FrameResult, checked_rgbd
+from cpslam.agent.jobs import mapping_job, refit
 from cpslam.agent.keyframes import KeyframeStore
-from cpslam.agent.mapper import Mapper, View
+from cpslam.agent.mapper import Mapper
 from cpslam.agent.motion import MOTION_MODELS, motion_guesses
 from cpslam.agent.recovery import Frame, Recovery
-from cpslam.agent.schedule import MapJob, MapOutcome, MapSchedule, MapState, run_map_job
+from cpslam.agent.schedule import (
+    MapJob,
+    MapOutcome,
+    MapSchedule,
+    MapState,
+    run_map_job,
+    split_threads,
+)
+from cpslam.agent.snapshot import FORMAT_VERSION as FORMAT_VERSION  # re-exported
+from cpslam.agent.snapshot import odometry_state, restore_odometry
 from cpslam.common.camera import Intrinsics
 from cpslam.common.datasets import RGBDFrame
 from cpslam.common.field import Decoders, FeatureCNN, NeuralPointMap
@@ -62,8 +75,6 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 __all__ = ["FrameResult", "Odometry"]
-
-FORMAT_VERSION = 1
 
 
 class Odometry:
@@ -164,7 +175,7 @@ class Odometry:
             recovery=Recovery.from_config(cfg.recovery, tr.iters) if cfg.recovery.enabled
             else None,
             schedule=cfg.run.schedule, max_pending_keyframes=mp.max_pending_keyframes,
-            mapping_threads=_split_threads() if cfg.run.schedule == "concurrent" else None,
+            mapping_threads=split_threads() if cfg.run.schedule == "concurrent" else None,
             first_publish_every=mp.first_publish_every,
         )
 
@@ -172,7 +183,7 @@ class Odometry:
 
     def step(self, frame: RGBDFrame) -> FrameResult:
         """Process the next frame (processed resolution) and return what happened."""
-        rgb, depth = self._check_frame(frame)
+        rgb, depth = checked_rgbd(frame, self.intrinsics, self.depth_min, self.depth_max)
         count = len(self.frames)
         generator = torch.Generator(device="cpu").manual_seed(
             self.seed * 1_000_003 + int(frame.index))
@@ -186,7 +197,7 @@ class Odometry:
         refit_steps, refit_time = 0, 0.0
         if self.fused:
             finished += self._drain_worker()
-            refit_steps, refit_time = self._refit(generator)
+            refit_steps, refit_time = refit(self, generator)
         if count > 0 and len(self.maps.published.point_map) == 0:
             self.maps.wait_for_map()  # nothing to track against before the first publish
         state = self.maps.published
@@ -215,7 +226,7 @@ class Odometry:
         self.frames.append(frame.timestamp, frame.index, T_world_cam, healthy)
         if mapping or kf_id is not None:
             t1 = time.perf_counter()
-            job = self._job(current, T_world_cam, kf_id, mapping, count, generator)
+            job = mapping_job(self, current, T_world_cam, kf_id, mapping, count, generator)
             if mapping:
                 self._last_map_count = count
             for outcome in self._recorded(self.maps.submit(job)):  # lock-step: done now
@@ -294,21 +305,6 @@ class Odometry:
 
     # ---------------------------------------------------------------------------- internals
 
-    def _check_frame(self, frame: RGBDFrame) -> tuple[np.ndarray, np.ndarray]:
-        """rgb uint8 and depth float32 clipped to [depth_min, depth_max] (0 outside)."""
-        shape = self.intrinsics.shape
-        if frame.depth.shape != shape or frame.rgb.shape != (*shape, 3):
-            raise ValueError(
-                f"Odometry.step: frame {frame.index} has rgb {frame.rgb.shape} / depth "
-                f"{frame.depth.shape}, expected {shape} (resize frames by camera.downscale "
-                f"before step)")
-        if frame.rgb.dtype != np.uint8:
-            raise ValueError(f"Odometry.step: frame {frame.index} rgb must be uint8, "
-                             f"got {frame.rgb.dtype}")
-        depth = np.asarray(frame.depth, dtype=np.float32)
-        ok = np.isfinite(depth) & (depth >= self.depth_min) & (depth <= self.depth_max)
-        return np.ascontiguousarray(frame.rgb), np.where(ok, depth, 0.0).astype(np.float32)
-
     def tracking_events(self) -> dict[str, int]:
         """Counts of the recovery: frames found suspect, recovered, lost (empty when off)."""
         if self.recovery is None:
@@ -361,36 +357,6 @@ class Odometry:
             self._last_tracked, guesses["zero_motion"], self.intrinsics, self.keyframes, seed)
         return outcome.result, outcome.event
 
-    def _job(self, current: Frame, T_world_cam: np.ndarray, kf_id: int | None, optimise: bool,
-             count: int, generator: torch.Generator) -> MapJob:
-        """The mapping call of this frame: register keyframe kf_id (when made here), then,
-        with `optimise`, add points anchored to the latest keyframe and optimise on this
-        frame and its co-visible keyframes. The pose is refined with the map when
-        mapping.pose_lr > 0 and the frame is not a keyframe (a keyframe's pose anchors points
-        and enters the pose table, so it stays as tracked)."""
-        anchor = self.keyframes.latest
-        assert anchor is not None  # frame 0 is always a keyframe
-        job = MapJob(count, current.index, np.asarray(T_world_cam, np.float64), anchor.kf_id,
-                     kf_id, optimise)
-        if not optimise:
-            return job
-        if count == 0:
-            job.iters, job.n_pixels = self.iters_first, self.n_pixels_first
-            job.publish_every = self.first_publish_every
-        else:
-            job.iters = self.iters_after_fusion if self.fused else self.iters
-            job.n_pixels = self.n_pixels
-        self.fused = False
-        job.rgb, job.depth = current.rgb, current.depth
-        job.views = self._views(current.rgb_t, current.depth_t, T_world_cam,
-                                exclude=() if kf_id is None else (kf_id,))
-        job.pose_lr = self.pose_lr if kf_id is None else 0.0
-        # Lock-step continues the frame's stream after tracking; the mapping thread gets a
-        # stream of its own (tracking's draws must not depend on when mapping runs).
-        job.generator = generator if not self.maps.concurrent else torch.Generator(
-            device="cpu").manual_seed((self.seed * 1_000_003 + current.index) * 2)
-        return job
-
     def _run_job(self, job: MapJob, state: MapState,
                  checkpoint: Callable[[], None] | None) -> MapOutcome:
         return run_map_job(job, state, self.mapper, self.cnn, self.intrinsics, self.agent_id,
@@ -409,98 +375,14 @@ class Odometry:
         """Wait for the mapping thread (concurrent) and record what it finished."""
         return self._recorded(self.maps.drain())
 
-    def _refit(self, generator: torch.Generator) -> tuple[int, float]:
-        """`mapping.iters_after_fusion` steps on the last frame (at its pose, which follows
-        the server's corrections) and its co-visible keyframes; steps and seconds. The
-        mapping thread is idle (drained) when this runs."""
-        if self._last_frame is None or not len(self.frames):
-            return 0, 0.0  # nothing to fit on (resumed): the next mapping call does it
-        self.fused = False
-        rgb_t, depth_t = self._last_frame.rgb_t, self._last_frame.depth_t
-        work = self.maps.work
-        result = self.mapper.optimise(work.point_map, work.decoders,
-                                      self._views(rgb_t, depth_t, self.frames.poses[-1]),
-                                      self.iters_after_fusion, self.n_pixels, generator)
-        self.maps.republish()
-        logger.debug("re-fit after a change from the server: %d steps, loss %.4f -> %.4f",
-                     result.steps, result.loss_first, result.loss_last)
-        return result.steps, result.seconds
-
-    def _views(self, rgb_t: torch.Tensor, depth_t: torch.Tensor, T_world_cam: np.ndarray,
-               exclude: tuple[int, ...] = ()) -> list[View]:
-        """The frame and its co-visible keyframes (their stored small copies)."""
-        views = [View(rgb_t, depth_t, T_world_cam, self.intrinsics)]
-        for other in self.keyframes.covisible(T_world_cam, self.intrinsics,
-                                              self.covisible_keyframes, exclude=exclude):
-            kf = self.keyframes.get(other)
-            views.append(View(
-                torch.from_numpy(kf.rgb_small).to(self.device).float() / 255.0,
-                torch.from_numpy(kf.depth_small).to(self.device),
-                kf.T_world_cam, self.keyframes.intrinsics_small,
-            ))
-        return views
-
     # ---------------------------------------------------------------------------- save/load
 
     def state_dict(self) -> dict:
         """Everything needed to render or resume (plain tensors, numbers, strings, lists and
-        dicts: loadable with torch.load(weights_only=True)); waits for the mapping thread."""
-        self.drain()
-        return {
-            "format_version": FORMAT_VERSION,
-            "agent_id": self.agent_id,
-            "seed": self.seed,
-            "intrinsics": self.intrinsics.to_dict(),
-            "point_map": self.maps.work.point_map.state_dict(),
-            "decoders": {k: v.detach().cpu().clone() for k, v in
-                         self.maps.work.decoders.state_dict().items()},
-            "keyframes": self.keyframes.state_dict(),
-            **self.frames.state_dict(),
-            "n_frames": self.n_frames,
-            "fused": self.fused,
-            "last_keyframe_count": -1 if self._last_kf_count is None else self._last_kf_count,
-            "last_mapping_count": -1 if self._last_map_count is None else self._last_map_count,
-            **({"recovery": self.recovery.state_dict()} if self.recovery is not None else {}),
-        }
+        dicts: loadable with torch.load(weights_only=True)); waits for the mapping thread
+        (`cpslam.agent.snapshot`)."""
+        return odometry_state(self)
 
     def load_state_dict(self, state: dict) -> None:
         """Restore what `state_dict` wrote (same config and processing resolution)."""
-        if int(state.get("format_version", -1)) != FORMAT_VERSION:
-            raise ValueError(f"odometry state: format_version {state.get('format_version')}, "
-                             f"expected {FORMAT_VERSION}")
-        intrinsics = Intrinsics.from_dict(state["intrinsics"])
-        if intrinsics != self.intrinsics:
-            raise ValueError(f"odometry state: saved at {intrinsics}, this odometry works at "
-                             f"{self.intrinsics}")
-        self.drain()
-        self.maps.work.point_map.load_state_dict(state["point_map"],
-                                                 source="odometry state point_map")
-        self.maps.work.decoders.load_state_dict(state["decoders"])
-        self.maps.republish()
-        self.keyframes.load_state_dict(state["keyframes"], source="odometry state keyframes")
-        self.frames.load_state_dict(state, int(state["n_frames"]))
-        self.seed = int(state["seed"])
-        self.agent_id = int(state["agent_id"])
-        self.fused = bool(state["fused"])
-        n = len(self.frames)
-        # States written before the counters existed made both on multiples of the period.
-        last_kf = int(state.get("last_keyframe_count", (n - 1) // self.kf_every * self.kf_every))
-        last_map = int(state.get("last_mapping_count",
-                                 (n - 1) // self.map_every * self.map_every))
-        self._last_kf_count = None if last_kf < 0 or n == 0 else last_kf
-        self._last_map_count = None if last_map < 0 or n == 0 else last_map
-        self._reference = None
-        latest = self.keyframes.latest
-        if latest is not None and len(latest.rgb_png):  # the comparison resumes at once
-            self._set_reference(latest.kf_id)
-        if self.recovery is not None and "recovery" in state:
-            self.recovery.load_state_dict(state["recovery"])
-
-
-def _split_threads() -> int:
-    """Torch threads of the mapping thread; the calling (tracking) thread keeps the rest, so
-    the two together use what `run.num_threads` gave the process (at least one each)."""
-    total = torch.get_num_threads()
-    mapping = max(1, total // 2)
-    torch.set_num_threads(max(1, total - mapping))
-    return mapping
+        restore_odometry(self, state)

@@ -41,7 +41,7 @@ from cpslam.common.field import Decoders, FeatureCNN, NeuralPointMap
 logger = logging.getLogger(__name__)
 
 __all__ = ["SCHEDULES", "MapJob", "MapOutcome", "MapSchedule", "MapState", "MappingWorker",
-           "run_map_job"]
+           "run_map_job", "split_threads"]
 
 SCHEDULES = ("concurrent", "lockstep")
 
@@ -125,6 +125,15 @@ def run_map_job(job: MapJob, state: MapState, mapper: Mapper, cnn: FeatureCNN,
                              checkpoint=checkpoint)
     return MapOutcome(job.count, job.index, job.anchor_kf, ids, result.steps, result.seconds,
                       time.perf_counter() - start, result.T_world_cam)
+
+
+def split_threads() -> int:
+    """Torch threads of the mapping thread; the calling (tracking) thread keeps the rest, so
+    the two together use what `run.num_threads` gave the process (at least one each)."""
+    total = torch.get_num_threads()
+    mapping = max(1, total // 2)
+    torch.set_num_threads(max(1, total - mapping))
+    return mapping
 
 
 class MappingWorker:

@@ -16,23 +16,29 @@ Two ways to cover the ordinary frames (``all_frames``):
 
 Noise sigmas are given in our order (translation metres, then rotation radians) and so is an
 information matrix passed to ``add_loop`` (the g2o order); gtsam's Pose3 tangent is rotation
-first, the conversion happens here. See docs/pose_graph.md.
+first, the conversion happens in the solver. See docs/pose_graph.md.
+
+This module builds the graph; ``cpslam.server.solver`` optimises it with gtsam and classifies
+the loops, ``cpslam.server.trajectory`` holds an agent's track as the graph takes it and
+``cpslam.server.g2o`` writes the graph to a file. Every name in ``__all__`` can be imported from
+here.
 """
 
 from __future__ import annotations
 
 import logging
 from collections.abc import Hashable
-from dataclasses import dataclass, field
 from itertools import pairwise
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING
 
-import gtsam
 import numpy as np
 
 from cpslam.common.geometry import compose, invert, is_rigid
 from cpslam.server.g2o import write_g2o
+from cpslam.server.solver import CHI2_6DOF_95, Edge, PoseGraphResult, RobustKernel, solve
+from cpslam.server.solver import Node as Node  # re-exported: the key type of the result's poses
+from cpslam.server.trajectory import AgentTrajectory, check_shape, correct_frames, frame_chain
 
 if TYPE_CHECKING:
     from cpslam.common.config.collab import PoseGraphConfig
@@ -47,93 +53,6 @@ __all__ = [
 ]
 
 logger = logging.getLogger(__name__)
-
-CHI2_6DOF_95 = 12.591587243743977
-"""95% quantile of the chi-square distribution with 6 degrees of freedom: a loop whose squared
-whitened residual exceeds it after optimisation is an outlier."""
-
-# The gauge prior pins a component's first node; 1e-6 keeps the system well conditioned
-# while moving the anchor by nothing measurable.
-_PRIOR_SIGMA = 1e-6
-
-RobustKernel = Literal["cauchy", "huber", "gnc", "none"]
-Node = tuple[str, int]
-"""A keyframe: ``(agent id, keyframe id)``; a frame node in all-frames mode:
-``(agent id, frame index)``."""
-
-
-@dataclass
-class PoseGraphResult:
-    """Outcome of ``PoseGraph.optimize``. Errors are gtsam graph errors (0.5 sum of squared
-    whitened residuals, robust-weighted on loop edges)."""
-
-    poses: dict[Node, np.ndarray]
-    """Optimised keyframe poses ``T_world_kf [4, 4]`` by ``(agent, kf_id)``."""
-    frame_poses: dict[Node, np.ndarray]
-    """Optimised frame-node poses by ``(agent, frame_index)`` (all-frames mode; else empty)."""
-    error_before: float
-    error_after: float
-    iterations: int | None
-    """Levenberg-Marquardt iterations; None for GNC, which does not report them."""
-    inlier_loops: list[Hashable]
-    outlier_loops: list[Hashable]
-    loop_chi2: dict[Hashable, float] = field(default_factory=dict)
-    """Squared whitened residual of each loop (Gaussian noise, no kernel) after optimisation."""
-
-
-@dataclass(frozen=True)
-class AgentTrajectory:
-    """What the server knows of one agent's track, in the group frame.
-
-    ``T_world_kf`` and ``T_kf_frame`` come from tracking: the relative poses between
-    consecutive keyframes/frames are the odometry the sequential edges encode.
-    """
-
-    kf_ids: np.ndarray
-    """Keyframe ids (int [K], increasing)."""
-    kf_frame_indices: np.ndarray
-    """Stream index of each keyframe's frame (int [K], increasing)."""
-    T_world_kf: np.ndarray
-    """Keyframe poses (float64 [K, 4, 4])."""
-    frame_indices: np.ndarray
-    """Stream indices of the ordinary frames (int [N]); may include keyframe frames."""
-    frame_kf_ids: np.ndarray
-    """Keyframe each frame is expressed against (int [N])."""
-    T_kf_frame: np.ndarray
-    """Frame poses in their keyframe's camera frame (float64 [N, 4, 4])."""
-
-    def __post_init__(self) -> None:
-        k, n = len(self.kf_ids), len(self.frame_indices)
-        _check_shape(self.kf_frame_indices, (k,), "kf_frame_indices")
-        _check_shape(self.T_world_kf, (k, 4, 4), "T_world_kf")
-        _check_shape(self.frame_kf_ids, (n,), "frame_kf_ids")
-        _check_shape(self.T_kf_frame, (n, 4, 4), "T_kf_frame")
-        if k == 0:
-            raise ValueError("AgentTrajectory: needs at least one keyframe")
-        if np.any(np.diff(self.kf_ids) <= 0) or np.any(np.diff(self.kf_frame_indices) <= 0):
-            raise ValueError("AgentTrajectory: kf_ids and kf_frame_indices must increase")
-        unknown = set(np.asarray(self.frame_kf_ids).tolist()) - set(self.kf_ids.tolist())
-        if unknown:
-            raise ValueError(f"AgentTrajectory.frame_kf_ids: unknown keyframes {sorted(unknown)}")
-
-
-def correct_frames(
-    kf_poses_new: dict[int, np.ndarray], frame_kf_ids: np.ndarray, T_kf_frame: np.ndarray
-) -> np.ndarray:
-    """Corrected frame poses ``T_world_frame [N, 4, 4] = T_world_kf_new @ T_kf_frame``.
-
-    ``kf_poses_new`` maps keyframe id to its corrected ``T_world_kf``; every id in
-    ``frame_kf_ids [N]`` must be present.
-    """
-    frame_kf_ids = np.asarray(frame_kf_ids)
-    _check_shape(T_kf_frame, (len(frame_kf_ids), 4, 4), "T_kf_frame")
-    missing = sorted(set(frame_kf_ids.tolist()) - set(kf_poses_new))
-    if missing:
-        raise ValueError(f"correct_frames: no corrected pose for keyframes {missing}")
-    if len(frame_kf_ids) == 0:
-        return np.zeros((0, 4, 4))
-    T_world_kf = np.stack([kf_poses_new[int(k)] for k in frame_kf_ids])
-    return compose(T_world_kf, np.asarray(T_kf_frame, dtype=np.float64))
 
 
 def loop_sigmas(
@@ -157,15 +76,6 @@ def loop_sigmas(
         raise ValueError(f"loop_sigmas: residual {residual_m} / reference {ref_residual_m}")
     scale = max(1.0, residual_m / ref_residual_m) / np.sqrt(overlap)
     return sigma_t * scale, sigma_r * scale
-
-
-@dataclass
-class _Edge:
-    key_a: int
-    key_b: int
-    T_a_b: np.ndarray
-    information: np.ndarray  # [6, 6], translation first (g2o order)
-    loop_id: Hashable | None  # None for sequential edges
 
 
 class PoseGraph:
@@ -213,7 +123,7 @@ class PoseGraph:
         # re-run after a new loop starts from the corrected map.
         self._estimate: list[np.ndarray] = []
         self._initial: list[np.ndarray] = []  # as added, for `reset_estimate`
-        self._edges: list[_Edge] = []
+        self._edges: list[Edge] = []
         self._loop_ids: set[Hashable] = set()
         self._trajectories: dict[str, AgentTrajectory] = {}
 
@@ -284,7 +194,7 @@ class PoseGraph:
             if sigma_t is not None or sigma_r is not None:
                 raise ValueError("add_loop: give either sigmas or an information matrix")
             info = np.asarray(information, dtype=np.float64)
-            _check_shape(info, (6, 6), "information")
+            check_shape(info, (6, 6), "information")
             if not np.allclose(info, info.T) or np.linalg.eigvalsh(info).min() <= 0:
                 raise ValueError("add_loop: information must be symmetric positive definite")
         else:
@@ -317,7 +227,7 @@ class PoseGraph:
         kf_ids = [int(k) for k in traj.kf_ids]
         kf_pose = dict(zip(kf_ids, compose(T_g, traj.T_world_kf), strict=True))
         if self.all_frames:
-            chain = _frame_chain(traj, kf_pose)
+            chain = frame_chain(traj, kf_pose)
         else:
             kf_frames = [int(f) for f in traj.kf_frame_indices]
             chain = [(("kf", k), f, kf_pose[k]) for k, f in zip(kf_ids, kf_frames, strict=True)]
@@ -342,68 +252,26 @@ class PoseGraph:
         """Optimise all nodes; classify loops by their residual afterwards."""
         if not self._names:
             raise ValueError("optimize: the pose graph has no nodes")
-        # 1. Factor graph: gauge priors, sequential edges (Gaussian), loops (robust).
-        graph = gtsam.NonlinearFactorGraph()
         anchors = self._component_anchors()
-        prior_noise = gtsam.noiseModel.Isotropic.Sigma(6, _PRIOR_SIGMA)
-        for key in anchors:
-            graph.add(gtsam.PriorFactorPose3(key, _pose3(self._estimate[key]), prior_noise))
-        # Loops go last so that the trusted factors are the indices 0 .. n_trusted - 1.
-        loops: list[tuple[_Edge, gtsam.BetweenFactorPose3]] = []
-        for edge in sorted(self._edges, key=lambda e: e.loop_id is not None):
-            base = _noise(edge.information)
-            graph.add(self._factor(edge, base))
-            if edge.loop_id is not None:
-                loops.append(
-                    (
-                        edge,
-                        gtsam.BetweenFactorPose3(edge.key_a, edge.key_b, _pose3(edge.T_a_b), base),
-                    )
-                )
-        n_trusted = graph.size() - len(loops)
-        # 2. Initial values: the current estimate (an anchor never moves, being the smallest
-        # key of every component it was ever in).
-        initial = gtsam.Values()
-        for key, T in enumerate(self._estimate):
-            initial.insert(key, _pose3(T))
-        # 3. Optimiser: Levenberg-Marquardt, or GNC around it with the trusted factors fixed.
-        lm_params = gtsam.LevenbergMarquardtParams()
-        lm_params.setMaxIterations(self.max_iters)
-        lm_params.setRelativeErrorTol(self.rel_tol)
-        if self.robust_kernel == "gnc":
-            gnc_params = gtsam.GncLMParams(lm_params)
-            gnc_params.setKnownInliers(list(range(n_trusted)))
-            optimizer = gtsam.GncLMOptimizer(graph, initial, gnc_params)
-            # Inlier threshold at the same 95% chi-square point as the classification.
-            optimizer.setInlierCostThresholdsAtProbability(0.95)
-            values, iterations = optimizer.optimize(), None
-        else:
-            optimizer = gtsam.LevenbergMarquardtOptimizer(graph, initial, lm_params)
-            values = optimizer.optimize()
-            iterations = optimizer.iterations()
-        # 4. Results and loop classification by the chi-square test.
-        poses = [values.atPose3(key).matrix() for key in range(self.num_nodes)]
-        self._estimate = [T.copy() for T in poses]
-        result = PoseGraphResult(
-            poses={},
-            frame_poses={},
-            error_before=graph.error(initial),
-            error_after=graph.error(values),
-            iterations=iterations,
-            inlier_loops=[],
-            outlier_loops=[],
+        result, poses = solve(
+            self._names,
+            self._estimate,
+            self._edges,
+            anchors,
+            robust_kernel=self.robust_kernel,
+            kernel_scale=self.kernel_scale,
+            max_iters=self.max_iters,
+            rel_tol=self.rel_tol,
         )
-        for (agent, kind, node_id), T in zip(self._names, poses, strict=True):
-            (result.poses if kind == "kf" else result.frame_poses)[(agent, node_id)] = T
-        for edge, factor in loops:
-            chi2 = 2.0 * factor.error(values)
-            result.loop_chi2[edge.loop_id] = chi2
-            inlier = chi2 <= CHI2_6DOF_95
-            (result.inlier_loops if inlier else result.outlier_loops).append(edge.loop_id)
-            if not inlier:
+        self._estimate = [T.copy() for T in poses]
+        outliers = set(result.outlier_loops)
+        loops = [e for e in self._edges if e.loop_id is not None]
+        for edge in loops:
+            if edge.loop_id in outliers:
                 logger.info("pose graph: loop %s %s-%s disagrees with the rest (chi2 %.1f above "
                             "%.1f): %s", edge.loop_id, self._names[edge.key_a],
-                            self._names[edge.key_b], chi2, CHI2_6DOF_95,
+                            self._names[edge.key_b], result.loop_chi2[edge.loop_id],
+                            CHI2_6DOF_95,
                             "rejected" if self.robust_kernel == "gnc" else "down-weighted")
         logger.info(
             "pose graph: %d nodes, %d edges, %d loops (%d outliers), error %.4g -> %.4g, "
@@ -482,17 +350,7 @@ class PoseGraph:
             )
         if key_a == key_b:
             raise ValueError(f"edge from node {self._names[key_a]} to itself")
-        self._edges.append(_Edge(key_a, key_b, T.copy(), information, loop_id))
-
-    def _factor(self, edge: _Edge, base: gtsam.noiseModel.Base) -> gtsam.BetweenFactorPose3:
-        noise = base
-        if edge.loop_id is not None and self.robust_kernel in ("cauchy", "huber"):
-            make = {
-                "cauchy": gtsam.noiseModel.mEstimator.Cauchy,
-                "huber": gtsam.noiseModel.mEstimator.Huber,
-            }[self.robust_kernel]
-            noise = gtsam.noiseModel.Robust.Create(make.Create(self.kernel_scale), base)
-        return gtsam.BetweenFactorPose3(edge.key_a, edge.key_b, _pose3(edge.T_a_b), noise)
+        self._edges.append(Edge(key_a, key_b, T.copy(), information, loop_id))
 
     def _component_anchors(self) -> list[int]:
         """The first-inserted node of each connected component (union-find over all edges)."""
@@ -511,44 +369,7 @@ class PoseGraph:
         return sorted({root(k) for k in range(self.num_nodes)})
 
 
-def _frame_chain(
-    traj: AgentTrajectory, kf_pose: dict[int, np.ndarray]
-) -> list[tuple[tuple[str, int], int, np.ndarray]]:
-    """Keyframes and frames in stream order: ``((kind, id), frame_index, T_world)``."""
-    chain = {
-        int(f): (("kf", int(k)), int(f), kf_pose[int(k)])
-        for k, f in zip(traj.kf_ids, traj.kf_frame_indices, strict=True)
-    }
-    frames = zip(traj.frame_indices, traj.frame_kf_ids, traj.T_kf_frame, strict=True)
-    for frame, kf, T_kf_frame in frames:
-        if int(frame) not in chain:  # a keyframe's own frame is the keyframe node
-            chain[int(frame)] = (
-                ("frame", int(frame)),
-                int(frame),
-                compose(kf_pose[int(kf)], T_kf_frame),
-            )
-    return [chain[f] for f in sorted(chain)]
-
-
 def _diag_information(sigma_t: float, sigma_r: float) -> np.ndarray:
     if not (sigma_t > 0 and sigma_r > 0):
         raise ValueError(f"sigmas must be > 0, got sigma_t={sigma_t}, sigma_r={sigma_r}")
     return np.diag([sigma_t**-2] * 3 + [sigma_r**-2] * 3)
-
-
-def _noise(information: np.ndarray) -> gtsam.noiseModel.Base:
-    """gtsam noise model from an information matrix in our (translation first) order."""
-    perm = [3, 4, 5, 0, 1, 2]  # gtsam's Pose3 tangent is (rotation, translation)
-    info = information[np.ix_(perm, perm)]
-    if np.count_nonzero(info - np.diag(np.diag(info))) == 0:
-        return gtsam.noiseModel.Diagonal.Precisions(np.diag(info).copy())
-    return gtsam.noiseModel.Gaussian.Information(info)
-
-
-def _pose3(T: np.ndarray) -> gtsam.Pose3:
-    return gtsam.Pose3(np.asarray(T, dtype=np.float64))
-
-
-def _check_shape(a: np.ndarray, shape: tuple[int, ...], name: str) -> None:
-    if np.shape(a) != shape:
-        raise ValueError(f"{name}: expected shape {shape}, got {np.shape(a)}")
