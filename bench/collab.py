@@ -151,6 +151,8 @@ def _false_loops(result, seqs, fraction: float, seed: int) -> dict:
         return {}
     rng = np.random.default_rng(seed)
     true = [e for e in graph._edges if e.loop_id is not None]  # noqa: SLF001 - bench only
+    if not true:
+        return {"skipped": "no loop edges to copy"}
     n_false = max(1, round(fraction * len(true) / (1 - fraction)))
     nodes = _kf_nodes(graph)
     taken = {(e.key_a, e.key_b) for e in true}
@@ -310,7 +312,9 @@ def _section_rows(name: str, sec: dict) -> list[tuple[str, str]]:
                      f"{edges['trans_cm_max']:.2f} cm, {edges['rot_deg_median']:.2f} deg median, "
                      f"chi2 median {edges['chi2_gt_median']:.1f}, kept {edges['kept']} of "
                      f"{len(edges['edges'])}"))
-    if fl:
+    if fl.get("skipped"):
+        rows.append((f"{name}: false loops", f"skipped: {fl['skipped']}"))
+    elif fl:
         change = abs(fl["joint_se3_rmse_m"] - base) / base * 100 if base else None
         rows.append((f"{name}: false loops flagged / injected, ATE with them",
                      f"{fl.get('false_flagged')} / {fl.get('false_loops')}, "
