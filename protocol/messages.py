@@ -114,14 +114,10 @@ def check_points(
             raise ValueError(f"{name}: has {array.shape[0]} rows, point_ids has {n}")
     if features.shape[1] > MAX_FEATURE_DIM:
         raise ValueError(f"features: F must be <= {MAX_FEATURE_DIM}, got {features.shape[1]}")
-    for name, ids in (
-        ("point_ids", point_ids),
-        ("removed_ids", removed_ids),
-        ("anchor_kf_ids", anchor_kf_ids),
-    ):
+    ordered = _sorted_unique(point_ids, "point_ids")
+    for name, ids in (("removed_ids", removed_ids), ("anchor_kf_ids", anchor_kf_ids)):
         if ids.size and ids.min() < 0:
             raise ValueError(f"{name}: ids must be >= 0")
-    ordered = _sorted_unique(point_ids, "point_ids")
     if _any_in(ordered, removed_ids):
         raise ValueError("removed_ids: an id cannot be both updated and removed")
 
