@@ -12,7 +12,7 @@ import numpy as np
 
 from cpslam.common.camera import Intrinsics, resize_rgbd
 from cpslam.protocol import KeyframeImage, KeyframeImageRequest
-from cpslam.protocol.images import WIRE_DEPTH_SCALE, quantise_depth
+from cpslam.protocol.images import depth_coding
 
 __all__ = ["image_reply", "rescale_reply"]
 
@@ -21,16 +21,15 @@ def image_reply(request: KeyframeImageRequest, rgb: np.ndarray, depth_m: np.ndar
                 intr: Intrinsics, rgb_codec: str = "jpeg", jpeg_quality: int = 90,
                 depth_step_mm_per_m2: float = 0.0) -> KeyframeImage:
     """The reply to `request` from a keyframe's RGB uint8 [H, W, 3] and depth float32 [H, W]
-    (m) with camera `intr`: resized by ``request.scale``, depth in `WIRE_DEPTH_SCALE` units
-    (rounded to steps of `depth_step_mm_per_m2` x z² when positive), only what it wants."""
+    (m) with camera `intr`: resized by ``request.scale``, depth as inverse depth in steps of
+    `depth_step_mm_per_m2` x z² mm, or at 0 in millimetres (`depth_coding`), only what it
+    wants."""
     if request.scale < 1.0:
         rgb, depth_m = resize_rgbd(rgb, depth_m, request.scale)
         intr = intr.scaled(request.scale)
-    if request.want_depth and depth_step_mm_per_m2 > 0:
-        # (at 0 the millimetres `from_metres` rounds to are the steps already)
-        depth_m = quantise_depth(depth_m, depth_step_mm_per_m2)
+    depth_scale, depth_encoding = depth_coding(depth_step_mm_per_m2)
     return KeyframeImage.from_metres(
-        depth_m if request.want_depth else None, depth_scale=WIRE_DEPTH_SCALE,
+        depth_m if request.want_depth else None, depth_scale, depth_encoding,
         agent_id=request.agent_id, kf_id=request.kf_id, fx=intr.fx, fy=intr.fy, cx=intr.cx,
         cy=intr.cy, width=intr.width, height=intr.height, rgb_codec=rgb_codec,
         jpeg_quality=jpeg_quality, rgb=rgb if request.want_rgb else None)
@@ -38,10 +37,11 @@ def image_reply(request: KeyframeImageRequest, rgb: np.ndarray, depth_m: np.ndar
 
 def rescale_reply(image: KeyframeImage, request: KeyframeImageRequest) -> KeyframeImage:
     """A stored full reply (both images) answered again for `request`, as `image_reply` would
-    have answered it from the keyframe's own images."""
+    have answered it from the keyframe's own images (in the stored reply's depth coding)."""
     if image.rgb is None or image.depth is None:
         raise ValueError(f"keyframe image {image.agent_id}/{image.kf_id}: a stored reply needs "
                          "both colour and depth")
     intr = Intrinsics(image.fx, image.fy, image.cx, image.cy, image.width, image.height)
+    step = 1000.0 / image.depth_scale if image.depth_encoding == "inverse" else 0.0
     return image_reply(request, image.rgb, image.depth_metres(), intr, image.rgb_codec,
-                       image.jpeg_quality)
+                       image.jpeg_quality, step)

@@ -94,7 +94,8 @@ class AgentLink:
             how features travel (`SubmapMirror`).
         feature_rows: a known point the server acknowledged goes with its features alone.
         decoder_delta: send decoder weights as an int8 delta against the last group decoder.
-        depth_step_mm_per_m2: keyframe depth goes in steps of this times depth² (`quantise_depth`).
+        depth_step_mm_per_m2: keyframe depth as inverse depth in steps of this x depth² mm
+            (`depth_coding`); 0: millimetres.
     """
 
     def __init__(

@@ -35,7 +35,13 @@ docs/configuration.md):
 - no-finetune, images-half-no-finetune: without the server's fine-tunes on keyframe images
   (``federation.finetune_iters`` and ``refinement.finetune_iters`` 0), at full and half size;
 - images-half-info2: half size with loop edges weighted 0.2 instead of 0.09
-  (``loop.information_scale``).
+  (``loop.information_scale``);
+- bits6, bits5, bits4: sub-map feature codes of that many bits (``link.feature_bits``);
+  jpeg80: keyframe colour at JPEG quality 80; images-half-bits5, images-half-jpeg80-bits5:
+  those together;
+- depth-mm, depth0.5, depth1, depth1.5: keyframe depth in millimetres, or as inverse depth in
+  steps of 0.5, 1 or 1.5 mm x depth² (``link.depth_step_mm_per_m2``); images-half-depth1-bits6:
+  half-size images, inverse depth at 1 and 6-bit features together.
 
 Per variant and agent: bytes per second of sensor time per message type (the server's
 counters in metrics.json), the joint se3 ATE of both global trajectories, the merge time, and
@@ -93,6 +99,12 @@ VARIANTS = {
     "images-half-bits5": ["loop.image_scale=0.5", "link.feature_bits=5"],
     "images-half-jpeg80-bits5": ["loop.image_scale=0.5", "link.jpeg_quality=80",
                                  "link.feature_bits=5"],
+    "depth-mm": ["link.depth_step_mm_per_m2=0"],
+    "depth0.5": ["link.depth_step_mm_per_m2=0.5"],
+    "depth1": ["link.depth_step_mm_per_m2=1"],
+    "depth1.5": ["link.depth_step_mm_per_m2=1.5"],
+    "images-half-depth1-bits6": ["loop.image_scale=0.5", "link.depth_step_mm_per_m2=1",
+                                 "link.feature_bits=6"],
 }
 
 

@@ -94,11 +94,10 @@ def over_the_wire(rgb: np.ndarray, depth: np.ndarray, mm_per_m2: float, jpeg_qua
     """(rgb, depth) as the server decodes an agent's image reply of them."""
     from cpslam import protocol
     from cpslam.protocol import KeyframeImage
-    from cpslam.protocol.images import WIRE_DEPTH_SCALE, quantise_depth
+    from cpslam.protocol.images import depth_coding
 
     h, w = depth.shape
-    msg = KeyframeImage.from_metres(quantise_depth(depth, mm_per_m2), WIRE_DEPTH_SCALE,
-                                    agent_id="a",
+    msg = KeyframeImage.from_metres(depth, *depth_coding(mm_per_m2), agent_id="a",
                                     kf_id=0, fx=1.0, fy=1.0, cx=0.0, cy=0.0, width=w,
                                     height=h, rgb=np.ascontiguousarray(rgb),
                                     jpeg_quality=jpeg_quality)

@@ -75,9 +75,11 @@ class _Image:
 class KeyframeImage(Message):
     """A keyframe's colour and/or depth image with its intrinsics (reply to the request).
 
-    Colour is RGB in memory and PNG (lossless) or JPEG on the wire; depth is uint16 in units
-    of 1/depth_scale metres (0 = invalid) and always PNG. `from_metres` and `depth_metres`
-    convert to and from float32 metres.
+    Colour is RGB in memory and PNG (lossless) or JPEG on the wire; depth is uint16, always
+    PNG, 0 = invalid, and either linear (value / depth_scale metres) or inverse
+    (depth_scale / value metres: steps that grow as depth², and planes whose values change
+    linearly across the image, which PNG's predictors store in few bytes). `from_metres` and
+    `depth_metres` convert to and from float32 metres.
     """
 
     max_bytes = 8 * MB
@@ -99,7 +101,9 @@ class KeyframeImage(Message):
     height: int = Field(ge=1, le=MAX_IMAGE_SIDE)
     """Image height H (pixels)."""
     depth_scale: float = Field(default=1000.0, gt=0)
-    """Depth units per metre (1000 = millimetres)."""
+    """Linear depth: units per metre (1000 = millimetres); inverse: value x depth in metres."""
+    depth_encoding: Literal["linear", "inverse"] = "linear"
+    """How a depth value maps to metres: value / depth_scale, or depth_scale / value."""
     rgb_codec: Literal["png", "jpeg"] = "jpeg"
     """How `rgb` is compressed on the wire."""
     jpeg_quality: int = Field(default=90, ge=1, le=100)
@@ -107,7 +111,7 @@ class KeyframeImage(Message):
     rgb: Annotated[np.ndarray, _Image("rgb")] | None = None
     """Colour image, RGB (uint8 [H, W, 3]); None when not requested."""
     depth: Annotated[np.ndarray, _Image("depth")] | None = None
-    """Depth image in 1/depth_scale metres, 0 = invalid (uint16 [H, W]); None when not requested."""
+    """Depth image as `depth_encoding` says, 0 = invalid (uint16 [H, W]); None: not requested."""
 
     @model_validator(mode="after")
     def _check(self) -> KeyframeImage:
@@ -135,23 +139,34 @@ class KeyframeImage(Message):
         cls,
         depth_m: np.ndarray | None,
         depth_scale: float = 1000.0,
+        depth_encoding: Literal["linear", "inverse"] = "linear",
         **fields: Any,
     ) -> KeyframeImage:
         """Build from float32 metric depth (0 or non-finite = invalid); other fields as kwargs.
 
-        Depths beyond the uint16 range (65535 / depth_scale m) become 0 (invalid) rather
-        than being clipped to a wrong value.
+        Depths the uint16 range cannot hold (linear: beyond 65535 / depth_scale m; inverse:
+        nearer than depth_scale / 65535 m or beyond 2 x depth_scale m) become 0 (invalid)
+        rather than being clipped to a wrong value.
         """
         depth = None
         if depth_m is not None:
-            scaled = np.nan_to_num(np.asarray(depth_m, np.float64) * depth_scale, nan=0.0)
+            z = np.nan_to_num(np.asarray(depth_m, np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+            if depth_encoding == "inverse":
+                with np.errstate(divide="ignore"):
+                    scaled = np.where(z > 0, depth_scale / np.where(z > 0, z, 1.0), 0.0)
+            else:
+                scaled = z * depth_scale
             scaled = np.rint(scaled)
             scaled[(scaled < 0) | (scaled > np.iinfo(np.uint16).max)] = 0
             depth = scaled.astype(np.uint16)
-        return cls(depth=depth, depth_scale=depth_scale, **fields)
+        return cls(depth=depth, depth_scale=depth_scale, depth_encoding=depth_encoding, **fields)
 
     def depth_metres(self) -> np.ndarray | None:
         """Depth as float32 metres [H, W] (0 = invalid), or None if absent."""
         if self.depth is None:
             return None
-        return (self.depth.astype(np.float64) / self.depth_scale).astype(np.float32)
+        value = self.depth.astype(np.float64)
+        if self.depth_encoding == "inverse":
+            return np.where(value > 0, self.depth_scale / np.maximum(value, 1.0),
+                            0.0).astype(np.float32)
+        return (value / self.depth_scale).astype(np.float32)

@@ -8,6 +8,7 @@ what the message declares, so a tiny file cannot decode into a huge image.
 
 from __future__ import annotations
 
+import math
 from typing import Any, Literal
 
 import cv2
@@ -19,9 +20,9 @@ __all__ = [
     "CODECS",
     "MAX_PIXELS",
     "WIRE_DEPTH_SCALE",
+    "depth_coding",
     "image_from_wire",
     "image_to_wire",
-    "quantise_depth",
     "read_header",
 ]
 
@@ -33,7 +34,7 @@ MAX_PIXELS = 4096 * 4096
 
 WIRE_DEPTH_SCALE = 1000.0
 """Depth units per metre of our agents' image replies: 1 mm steps, coarser than a keyframe
-store's 0.2 mm and a third smaller in PNG (`quantise_depth` may coarsen them further)."""
+store's 0.2 mm and a third smaller in PNG (`depth_coding` trades them for inverse depth)."""
 
 ImageKind = Literal["rgb", "depth"]
 
@@ -45,20 +46,20 @@ _JPEG_STANDALONE = {0x01, *range(0xD0, 0xD8)}
 _PNG_LEVEL = 6  # zlib level: a fifth smaller than 3 on depth for 2x the time; 9 is 15x slower
 
 
-def quantise_depth(depth_m: np.ndarray, mm_per_m2: float) -> np.ndarray:
-    """Metric depth ``[H, W]`` rounded to steps of ``max(1, round(mm_per_m2 * z^2))`` mm.
+def depth_coding(step_mm_per_m2: float) -> tuple[float, Literal["linear", "inverse"]]:
+    """``(depth_scale, depth_encoding)`` of a keyframe image whose depth goes in steps of
+    ``step_mm_per_m2`` x z² mm: inverse depth with ``depth_scale = 1000 / step`` (a value u
+    stands for ``depth_scale / u`` m), or at 0 linear millimetres (`WIRE_DEPTH_SCALE`).
 
     A structured-light or time-of-flight sensor's depth noise grows as the square of the
-    depth (about 1.5 mm at 1 m, 6 mm at 2 m for a Kinect), so steps below it lose nothing a
-    registration can use, and PNG stores the coarser steps in fewer bytes. 0 keeps every
-    millimetre; 0 and non-finite depths stay as they are (invalid)."""
-    depth = np.asarray(depth_m, np.float64)
-    if mm_per_m2 < 0:
-        raise ValueError(f"quantise_depth: mm_per_m2 must be >= 0, got {mm_per_m2}")
-    mm = np.where(np.isfinite(depth), depth, 0.0) * 1000.0
-    step = np.maximum(1.0, np.round(mm_per_m2 * np.square(mm / 1000.0)))
-    out = np.round(mm / step) * step / 1000.0
-    return np.where(np.isfinite(depth) & (depth > 0), out, depth).astype(np.float32)
+    depth (about 1.5 mm at 1 m, 6 mm at 2 m for a Kinect), so steps that grow the same way
+    keep what a registration can use where it matters; and a plane's inverse depth changes
+    linearly across the image, which PNG's predictors store in few bytes."""
+    if not (math.isfinite(step_mm_per_m2) and step_mm_per_m2 >= 0):
+        raise ValueError(f"depth_coding: step_mm_per_m2 must be >= 0, got {step_mm_per_m2}")
+    if step_mm_per_m2 == 0:
+        return WIRE_DEPTH_SCALE, "linear"
+    return 1000.0 / step_mm_per_m2, "inverse"
 
 
 def image_to_wire(

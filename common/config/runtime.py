@@ -144,11 +144,20 @@ class LinkConfig(Section):
     jpeg_quality: int = Field(default=90, ge=1, le=100)
     """JPEG quality of the keyframe colour images sent to the server."""
     depth_step_mm_per_m2: NonNegativeFloat = 0.0
-    """Keyframe depth to the server in steps of this x depth² (mm/m², >= 1 mm); 0: every mm."""
+    """Keyframe depth as inverse depth, in steps of this x depth² mm (0.1-50); 0: linear mm."""
     record: bool = False
     """Write every message sent, with its timing, and the keyframe images to agent_<id>/wire.rec."""
     record_mb: PositiveFloat = 1024.0
     """Largest wire recording (MiB); recording stops, with a warning, beyond it."""
+
+    @field_validator("depth_step_mm_per_m2")
+    @classmethod
+    def _depth_step(cls, value: float) -> float:
+        # uint16 inverse depth holds 1000 / (step x 65535) m to 2000 / step m: 0.15 m to 20 km
+        # at 0.1, 0.3 m to 40 m at 50; outside that a sensor's near or far range is lost.
+        if value != 0 and not 0.1 <= value <= 50:
+            raise ValueError(f"depth step {value} mm/m²: expected 0 (linear mm) or 0.1-50")
+        return value
 
 
 class RunConfig(Section):

@@ -234,6 +234,7 @@ def test_bad_enum_lists_choices() -> None:
         ("transport.listen=[http://x:1]", r"should look like tcp/HOST:PORT"),
         ("transport.connect=[tcp/1.2.3.4:70000]", r"port must be at most 65535"),
         ("camera.downscale=2", r"camera\.downscale"),
+        ("link.depth_step_mm_per_m2=0.05", r"expected 0 \(linear mm\) or 0\.1-50"),
     ],
 )
 def test_cross_field_and_format_checks(item: str, pattern: str) -> None:

@@ -356,6 +356,25 @@ def test_image_request_at_half_scale_gets_half_the_size_with_matching_intrinsics
     protocol.decode(protocol.encode(half), expected=KeyframeImage)
 
 
+def test_inverse_depth_reply_keeps_its_coding_when_answered_again(warm) -> None:
+    from cpslam.agent.images import image_reply, rescale_reply
+
+    link, _ = warm
+    store = link.odometry.keyframes
+    rgb, depth = store.full_rgbd(1)
+    request = KeyframeImageRequest(agent_id="a0", kf_id=1)
+    reply = image_reply(request, rgb, depth, store.intrinsics, depth_step_mm_per_m2=1.0)
+    back = protocol.decode(protocol.encode(reply), expected=KeyframeImage)
+    assert (back.depth_encoding, back.depth_scale) == ("inverse", 1000.0)
+    ok = depth > 0
+    step_m = 1e-3 * depth[ok].astype(np.float64) ** 2  # 1 mm x depth^2
+    assert (np.abs(back.depth_metres()[ok] - depth[ok]) <= 0.51 * step_m + 1e-6).all()
+    assert (back.depth_metres()[~ok] == 0).all()
+    half = rescale_reply(back, KeyframeImageRequest(agent_id="a0", kf_id=1, scale=0.5))
+    assert (half.depth_encoding, half.depth_scale) == ("inverse", 1000.0)
+    assert half.width == round(back.width / 2)
+
+
 def test_joining_a_group_offers_weights_at_the_next_mapping() -> None:
     link = _link(rounds=100)  # without a merge, weights would wait for 100 mapping calls
     msgs = _run(link, 0, 3)

@@ -55,7 +55,7 @@ def test_round_trip_every_type(msg):
         data = decompress(data, P.max_bytes(msg.type_name()))
     wire = msgpack.unpackb(data, raw=False)
     assert list(wire)[:2] == ["type", "version"]
-    assert wire["version"] == P.PROTOCOL_VERSION == 5
+    assert wire["version"] == P.PROTOCOL_VERSION == 6
 
 
 def test_decoded_arrays_are_writable_native_copies():
@@ -444,24 +444,36 @@ def test_tensor_names_and_counts_are_limited():
         P.DecoderWeights(**ok, tensors={})
 
 
-def test_depth_is_quantised_in_steps_that_grow_as_depth_squared():
-    from cpslam.protocol.images import image_to_wire, quantise_depth
+def test_inverse_depth_goes_in_steps_that_grow_as_depth_squared():
+    from cpslam.protocol.images import depth_coding, image_to_wire
 
     rng = np.random.default_rng(0)
     # a slanted wall from 0.3 to 4 m with a sensor's noise (1.5 mm x depth^2)
     wall = np.broadcast_to(np.linspace(0.3, 4.0, 160), (120, 160))
     z = (wall + rng.normal(0.0, 1.5e-3, wall.shape) * wall**2).astype(np.float32)
-    z[0, :10], z[1, :10] = 0.0, np.nan  # invalid depths stay invalid
-    q = quantise_depth(z, 1.5)
-    assert (q[0, :10] == 0).all() and np.isnan(q[1, :10]).all()
+    z[0, :10], z[1, :10], z[2, :10] = 0.0, np.nan, -1.0  # invalid depths stay invalid
+    fields = _image_fields(width=160, height=120, rgb=None)
+    del fields["depth"]
+    assert depth_coding(0.0) == (1000.0, "linear")
+    scale, encoding = depth_coding(1.5)
+    assert encoding == "inverse" and scale == pytest.approx(1000 / 1.5)
+    inv = P.decode(P.encode(P.KeyframeImage.from_metres(z, scale, encoding, **fields)))
+    mm = P.decode(P.encode(P.KeyframeImage.from_metres(z, 1000.0, **fields)))
+    assert inv.depth_encoding == "inverse" and mm.depth_encoding == "linear"
+    back = inv.depth_metres()
+    assert (back[:3, :10] == 0).all()
     ok = np.isfinite(z) & (z > 0)
-    step_m = np.maximum(1.0, np.round(1.5 * z[ok].astype(np.float64) ** 2)) / 1000
-    assert (np.abs(q[ok] - z[ok]) <= step_m / 2 + 1e-6).all()
-    assert np.abs(q[ok] - z[ok])[z[ok] < 0.5].max() <= 0.5e-3 + 1e-6  # 1 mm steps up close
-    exact_m = np.round(z[ok].astype(np.float64) * 1000) / 1000
-    np.testing.assert_allclose(quantise_depth(z, 0.0)[ok], exact_m, atol=1e-6)
-    mm = (np.nan_to_num(q) * 1000).round().astype(np.uint16)
-    exact = (np.nan_to_num(z) * 1000).round().astype(np.uint16)
-    assert len(image_to_wire(mm, "depth")["data"]) < len(image_to_wire(exact, "depth")["data"])
-    with pytest.raises(ValueError, match="mm_per_m2"):
-        quantise_depth(z, -1.0)
+    zz = z[ok].astype(np.float64)
+    step_m = 1.5e-3 * zz**2  # u = scale / z: one unit of u is 1.5 mm x z^2 of depth
+    err = np.abs(back[ok] - zz)
+    assert (err <= 0.5 * step_m * 1.01 + 1e-6).all()
+    assert err[zz < 0.5].max() <= 0.2e-3  # finer than millimetres up close
+    assert err[zz > 3.0].max() > 0.5e-3  # coarser than millimetres far away
+    assert len(image_to_wire(inv.depth, "depth")["data"]) < len(
+        image_to_wire(mm.depth, "depth")["data"])
+    # depths the uint16 range cannot hold are invalid, not clipped: nearer than scale/65535 m
+    near = P.KeyframeImage.from_metres(np.full((120, 160), 0.005, np.float32), scale,
+                                       encoding, **fields)
+    assert (near.depth == 0).all()
+    with pytest.raises(ValueError, match="step_mm_per_m2"):
+        depth_coding(-1.0)
