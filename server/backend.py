@@ -2,9 +2,10 @@
 
 No transport and no threads: the daemon calls `handle` for every decoded agent message, `step`
 regularly (it runs the pending work), `agent_left` when an agent's liveliness goes, `status`
-for the status query and `finalise` at the end; each returns the messages to send
-(`Outgoing`). Time comes from the injected ``now`` and keyframe images from ``fetch_image``
-(the server pulls images only for loop candidates and fine-tuning), so tests drive it fully.
+for the status query and `finalise` at the end; each returns the messages to send (`Outgoing`,
+defined in `outgoing`). Time comes from the injected ``now`` and keyframe images from
+``fetch_image`` (the server pulls images only for loop candidates and fine-tuning), so tests
+drive it fully.
 
 Per new keyframe the loop pipeline (`loops`: candidates, image pulls, registration,
 refinement, verification, retries) verifies candidate pairs; a fine loop between two groups
@@ -20,18 +21,18 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from cpslam.common.geometry import compose
-from cpslam.protocol import GroupDecoder, KeyframeImage, Message
+from cpslam.protocol import KeyframeImage, Message
 from cpslam.server.federation import Federator
 from cpslam.server.final import final_result
 from cpslam.server.fusion import MemberMap
 from cpslam.server.groups import Group, Groups
 from cpslam.server.loops import Candidate, LoopBook, LoopDatabase, LoopPipeline, LoopRecord
+from cpslam.server.outgoing import Outgoing, to_groups
 from cpslam.server.pose_graph import PoseGraph, PoseGraphResult
 from cpslam.server.registry import Registry
 from cpslam.server.result import FinalResult
@@ -53,15 +54,6 @@ if TYPE_CHECKING:
 __all__ = ["Backend", "LoopRecord", "Outgoing", "new_state_id"]
 
 logger = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class Outgoing:
-    """A message to publish: to one agent (``scope`` "agent") or to a group's decoder key."""
-
-    target: str
-    message: Message
-    scope: str = "agent"
 
 
 class Backend:
@@ -289,7 +281,7 @@ class Backend:
                                         "push_s": time.perf_counter() - t1})
         for agent, msg in self.registry.take_new_decoders():
             self.federator.submit(agent, msg)
-        out += _to_groups(self.federator.close_rounds())
+        out += to_groups(self.federator.close_rounds())
         out += self._share()
         return out
 
@@ -358,7 +350,7 @@ class Backend:
             for key in [key for key in self.corrected if key[0] == m]:
                 self.corrected[key] = compose(T_new_old, self.corrected[key])
         t1 = time.perf_counter()
-        out = _to_groups(self.federator.merged(group))
+        out = to_groups(self.federator.merged(group))
         # Stages of the merge (s): the loop's verification, the alignment of the two frames,
         # the decoders' fusion; the step adds the pose graph and the push to the members.
         stages = {"verify_s": loop.seconds, "align_s": t1 - t0,
@@ -440,7 +432,3 @@ class Backend:
     def load_state_dict(self, state: dict) -> None:
         """Restore a `state_dict`; the loop database is refilled from the keyframes."""
         restore_backend(self, state)
-
-
-def _to_groups(decoders: list[GroupDecoder]) -> list[Outgoing]:
-    return [Outgoing(msg.group_id, msg, scope="group") for msg in decoders]

@@ -48,9 +48,10 @@ from cpslam.protocol import (
     UpdateAck,
     keys,
 )
-from cpslam.server.backend import Backend, Outgoing
+from cpslam.server.backend import Backend
 from cpslam.server.bounds import fit_status, status_size
 from cpslam.server.export import export_run
+from cpslam.server.outgoing import Outgoing
 from cpslam.server.persist import AckGate, StateWriter, detach
 from cpslam.server.presence import AgentPresence
 from cpslam.server.traffic import (
