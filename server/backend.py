@@ -36,6 +36,7 @@ from cpslam.server.outgoing import Outgoing, to_groups
 from cpslam.server.pose_graph import PoseGraph, PoseGraphResult
 from cpslam.server.registry import Registry
 from cpslam.server.result import FinalResult
+from cpslam.server.settings import backend_args
 from cpslam.server.sharing import MemberUpdates
 from cpslam.server.state import backend_state, new_state_id, restore_backend
 from cpslam.server.tracks import add_group_tracks, group_kf_poses
@@ -149,24 +150,9 @@ class Backend:
     @classmethod
     def from_config(cls, cfg: CpslamConfig, fetch_image: Callable[[str, int], KeyframeImage |
                     None], **kwargs: Any) -> Backend:
-        """A back end with the settings of a whole config (``kwargs`` override/add)."""
-        from cpslam.common.field_config import field_spec
-        from cpslam.common.place_recognition import descriptor_dim
-        from cpslam.server.registry import registry_args
-
-        spec = field_spec(cfg.field)
-        dim = cfg.limits.descriptor_dim or descriptor_dim(cfg.place_recognition)
-        args: dict[str, Any] = {
-            "registry_args": registry_args(cfg.limits, dim),
-            "image_cache_bytes": int(cfg.limits.image_cache_mb * 2**20),
-            "seed": cfg.run.seed,
-            "decoders_factory": lambda: spec.decoders(cfg.run.seed),
-            "finetune_lr": cfg.mapping.lr_decoders,
-            "finetune_lr_features": cfg.mapping.lr_features,
-            "color_weight": cfg.mapping.color_weight,
-            "update_resend_after_s": cfg.transport.resend_after_s,
-            "update_max_points": cfg.transport.update_max_points,
-        }
+        """A back end with the settings of a whole config (`backend_args`; ``kwargs``
+        override/add)."""
+        spec, args = backend_args(cfg)
         args.update(kwargs)
         backend = cls(cfg.loop, cfg.federation, cfg.pose_graph, cfg.refinement, fetch_image, spec,
                       **args)
