@@ -39,7 +39,7 @@ from cpslam.server.result import FinalResult
 from cpslam.server.settings import backend_args
 from cpslam.server.sharing import MemberUpdates
 from cpslam.server.state import backend_state, new_state_id, restore_backend
-from cpslam.server.tracks import add_group_tracks, group_kf_poses
+from cpslam.server.tracks import group_kf_poses, optimise_groups
 
 if TYPE_CHECKING:
     from cpslam.common.config import CpslamConfig
@@ -354,18 +354,8 @@ class Backend:
         """Optimise the pose graph of these groups (every member's odometry in its group frame,
         the accepted loops between members of one group); keyframe corrections and loop
         outliers are kept. Returns the graph, its result (None for an empty graph), its loops
-        and the members' trajectories."""
-        graph = PoseGraph.from_config(self.pg_cfg)
-        loops, trajectories = add_group_tracks(graph, self.registry, groups, self.loops,
-                                               self.pg_cfg.loop_sigma_t, self.pg_cfg.loop_sigma_r)
-        if graph.num_nodes == 0:
-            return graph, None, loops, trajectories
-        result = graph.optimize()
-        for (agent, kf), T in result.poses.items():
-            self.corrected[(agent, kf)] = T
-        for lp in loops:
-            lp.outlier = lp.loop_id in result.outlier_loops
-        return graph, result, loops, trajectories
+        and the members' trajectories (`optimise_groups`)."""
+        return optimise_groups(self.pg_cfg, self.registry, groups, self.loops, self.corrected)
 
     def _optimise_group(self, group: Group) -> None:
         t0 = time.perf_counter()
