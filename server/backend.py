@@ -9,11 +9,13 @@ drive it fully.
 
 Per new keyframe the loop pipeline (`loops`: candidates, image pulls, registration,
 refinement, verification, retries) verifies candidate pairs; a fine loop between two groups
-merges them (`groups`: alignment of the two frames) and the `Federator` (`federation`) averages
-and fine-tunes their decoders; then the group's pose graph is optimised and every member gets
-a `ServerUpdate` (`sharing`: alignment, corrected keyframe poses, other members' points) and,
-after a merge, a `GroupDecoder`. `finalise` runs the last pose graph, the map refinement
-(`refinement`) and gathers the `FinalResult` (`result`). See docs/server.md.
+merges them (`merges`; `groups`: alignment of the two frames) and the `Federator`
+(`federation`) averages and fine-tunes their decoders; then the group's pose graph is
+optimised (`tracks`) and every member gets a `ServerUpdate` (`sharing`: alignment, corrected
+keyframe poses, other members' points) and, after a merge, a `GroupDecoder`. `finalise` runs
+the last pose graph, the map refinement (`refinement`) and gathers the `FinalResult`
+(`result`). `from_config` reads its arguments from a whole config (`settings`). See
+docs/server.md.
 """
 
 from __future__ import annotations
@@ -25,13 +27,13 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from cpslam.common.geometry import compose
 from cpslam.protocol import KeyframeImage, Message
 from cpslam.server.federation import Federator
 from cpslam.server.final import final_result
 from cpslam.server.fusion import MemberMap
 from cpslam.server.groups import Group, Groups
 from cpslam.server.loops import Candidate, LoopBook, LoopDatabase, LoopPipeline, LoopRecord
+from cpslam.server.merges import add_stages, merge_groups, merge_record
 from cpslam.server.outgoing import Outgoing, to_groups
 from cpslam.server.pose_graph import PoseGraph, PoseGraphResult
 from cpslam.server.registry import Registry
@@ -304,8 +306,7 @@ class Backend:
         """Add the pose graph's and push's times to the merge this step made into the group."""
         merge = self._open_merges.pop(group_id, None)
         if merge is not None:
-            merge["stages"].update({k: round(v, 4) for k, v in stages.items()})
-            merge["seconds"] = round(sum(merge["stages"].values()), 4)
+            add_stages(merge, stages)
 
     # ----------------------------------------------------------------------------- groups
 
@@ -326,28 +327,14 @@ class Backend:
         return out
 
     def _merge(self, loop: LoopRecord) -> list[Outgoing]:
-        t0 = time.perf_counter()
-        for agent in (loop.agent_a, loop.agent_b):  # a merge abandons both groups' rounds
-            self.federator.abandon(self.groups.group_of(agent).group_id)
-        group, _, T_new_old, joined = self.groups.merge_at_loop(
-            loop, self.kf_poses, lambda agent: self.registry.agents[agent].index)
-        for m in joined:  # the joining members' keyframes and corrected poses change frame
-            self.pipeline.regroup(m, group.group_id)
-            for key in [key for key in self.corrected if key[0] == m]:
-                self.corrected[key] = compose(T_new_old, self.corrected[key])
-        t1 = time.perf_counter()
-        out = to_groups(self.federator.merged(group))
-        # Stages of the merge (s): the loop's verification, the alignment of the two frames,
-        # the decoders' fusion; the step adds the pose graph and the push to the members.
-        stages = {"verify_s": loop.seconds, "align_s": t1 - t0,
-                  "decoders_s": time.perf_counter() - t1}
-        merge = {"time": self.now() - self.t_start, "group": group.group_id, "joined": joined,
-                 "members": group.members, "loop_id": loop.loop_id,
-                 "stages": {k: round(v, 4) for k, v in stages.items()},
-                 "seconds": round(sum(stages.values()), 4)}
+        group, joined, decoders, stages = merge_groups(
+            loop, self.groups, self.pipeline, self.federator, self.corrected, self.kf_poses,
+            lambda agent: self.registry.agents[agent].index)
+        # The step adds the pose graph's and the push's stages (`_merge_timed`).
+        merge = merge_record(self.now() - self.t_start, group, joined, loop, stages)
         self.merges.append(merge)
         self._open_merges[group.group_id] = merge
-        return out
+        return to_groups(decoders)
 
     def optimise(self, groups: list[Group]) -> tuple[PoseGraph, PoseGraphResult | None,
                                                        list[LoopRecord], dict[str, Any]]:
