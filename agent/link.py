@@ -5,9 +5,8 @@ into protocol messages (keyframes with descriptors, sub-map deltas of the agent'
 batched frame poses, decoder weights for federated rounds), numbers them with one counter
 (``seq`` from 0) and keeps each in an outbox until an `Ack` covers it. Sub-map deltas go
 every ``submap_every_mappings`` mapping calls with only the points that moved enough since
-the server's copy, decoder weights as a delta against the last loaded group decoder
-(`cpslam.agent.deltas`). Between frames it
-applies what the server pushed:
+the server's copy (`cpslam.agent.submap`), decoder weights as a delta against the last loaded
+group decoder (`cpslam.agent.deltas`). Between frames it applies what the server pushed:
 
 - `ServerUpdate`: the whole local world moves into the group frame (keyframe poses in the
   map's pose table, so every point moves with its keyframe; the keyframe store; the
@@ -34,10 +33,11 @@ import numpy as np
 import torch
 
 from cpslam.agent.corrections import correct_keyframes, move_world, rigid
-from cpslam.agent.deltas import DecoderBase, SubmapMirror, encode_features
+from cpslam.agent.deltas import DecoderBase, SubmapMirror
 from cpslam.agent.foreign import merge_foreign
 from cpslam.agent.images import image_reply
 from cpslam.agent.outbox import Outbox
+from cpslam.agent.submap import submap_delta_fields
 from cpslam.common.bounds import tensor_mismatch
 from cpslam.common.geometry import compose, invert
 from cpslam.protocol import (
@@ -262,34 +262,13 @@ class AgentLink:
 
     def _submap_delta(self, max_points: int | None = None) -> SubmapDelta | None:
         """Own points that are new or moved enough since the server's copy (the first
-        `max_points` of them), and own points that disappeared."""
+        `max_points` of them), and own points that disappeared (`submap_delta_fields`)."""
         self._submap_mappings = 0
-        pm = self.odometry.point_map
-        rows = (pm.agent_id == self.own).nonzero(as_tuple=True)[0]
-        ids = pm.point_id[rows].cpu().numpy()
-        order = np.argsort(ids)
-        ids, rows = ids[order], rows[torch.from_numpy(order).to(rows.device)]
-        feats = pm.features.detach()[rows].cpu().numpy().astype(np.float32)
-        send, removed = self.mirror.select(ids, feats)
-        if max_points is not None:
-            send[np.nonzero(send)[0][max_points:]] = False
-        if not send.any() and not len(removed):
+        fields = submap_delta_fields(self.odometry.point_map, self.own, self.mirror, self._seq,
+                                     self.feature_rows, self.outbox.floor, max_points)
+        if fields is None:
             return None
-        alone = (self.mirror.feature_only(ids, send, self.outbox.floor) if self.feature_rows
-                 else np.zeros_like(send))
-        whole = send & ~alone
-        # feature rows: the whole points' first, then those going alone
-        order = np.concatenate((np.nonzero(whole)[0], np.nonzero(alone)[0]))
-        fields, received = encode_features(feats[order], self.mirror.codec,
-                                            self.mirror.bits)
-        self.mirror.commit(ids, send, received[np.argsort(order)], self._seq, alone)
-        r = rows[torch.from_numpy(np.nonzero(whole)[0]).to(rows.device)]
-        return self._stamp(SubmapDelta(
-            agent_id=self.agent_id, seq=0, point_ids=ids[whole],
-            anchor_kf_ids=pm.anchor_kf[r].cpu().numpy().astype(np.int32),
-            xyz_local=pm.xyz_local[r].detach().cpu().numpy().astype(np.float32),
-            colors=pm.color[r].cpu().numpy().astype(np.uint8),
-            removed_ids=removed.astype(np.int64), feature_ids=ids[alone], **fields))
+        return self._stamp(SubmapDelta(agent_id=self.agent_id, seq=0, **fields))
 
     def _decoder_weights(self) -> DecoderWeights:
         tensors = {k: v.detach().cpu().numpy().astype(np.float32)

@@ -2,17 +2,20 @@
 
 No transport and no threads: the daemon calls `handle` for every decoded agent message, `step`
 regularly (it runs the pending work), `agent_left` when an agent's liveliness goes, `status`
-for the status query and `finalise` at the end; each returns the messages to send
-(`Outgoing`). Time comes from the injected ``now`` and keyframe images from ``fetch_image``
-(the server pulls images only for loop candidates and fine-tuning), so tests drive it fully.
+for the status query and `finalise` at the end; each returns the messages to send (`Outgoing`,
+defined in `outgoing`). Time comes from the injected ``now`` and keyframe images from
+``fetch_image`` (the server pulls images only for loop candidates and fine-tuning), so tests
+drive it fully.
 
 Per new keyframe the loop pipeline (`loops`: candidates, image pulls, registration,
 refinement, verification, retries) verifies candidate pairs; a fine loop between two groups
-merges them (`groups`: alignment of the two frames) and the `Federator` (`federation`) averages
-and fine-tunes their decoders; then the group's pose graph is optimised and every member gets
-a `ServerUpdate` (`sharing`: alignment, corrected keyframe poses, other members' points) and,
-after a merge, a `GroupDecoder`. `finalise` runs the last pose graph, the map refinement
-(`refinement`) and gathers the `FinalResult` (`result`). See docs/server.md.
+merges them (`merges`; `groups`: alignment of the two frames) and the `Federator`
+(`federation`) averages and fine-tunes their decoders; then the group's pose graph is
+optimised (`tracks`) and every member gets a `ServerUpdate` (`sharing`: alignment, corrected
+keyframe poses, other members' points) and, after a merge, a `GroupDecoder`. `finalise` runs
+the last pose graph, the map refinement (`refinement`) and gathers the `FinalResult`
+(`result`). `from_config` reads its arguments from a whole config (`settings`). See
+docs/server.md.
 """
 
 from __future__ import annotations
@@ -20,24 +23,25 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from cpslam.common.geometry import compose
-from cpslam.protocol import GroupDecoder, KeyframeImage, Message
+from cpslam.protocol import KeyframeImage, Message
 from cpslam.server.federation import Federator
 from cpslam.server.final import final_result
 from cpslam.server.fusion import MemberMap
 from cpslam.server.groups import Group, Groups
 from cpslam.server.loops import Candidate, LoopBook, LoopDatabase, LoopPipeline, LoopRecord
+from cpslam.server.merges import add_stages, merge_groups, merge_record
+from cpslam.server.outgoing import Outgoing, to_groups
 from cpslam.server.pose_graph import PoseGraph, PoseGraphResult
 from cpslam.server.registry import Registry
 from cpslam.server.result import FinalResult
+from cpslam.server.settings import backend_args
 from cpslam.server.sharing import MemberUpdates
 from cpslam.server.state import backend_state, new_state_id, restore_backend
-from cpslam.server.tracks import add_group_tracks, group_kf_poses
+from cpslam.server.tracks import group_kf_poses, optimise_groups
 
 if TYPE_CHECKING:
     from cpslam.common.config import CpslamConfig
@@ -53,15 +57,6 @@ if TYPE_CHECKING:
 __all__ = ["Backend", "LoopRecord", "Outgoing", "new_state_id"]
 
 logger = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class Outgoing:
-    """A message to publish: to one agent (``scope`` "agent") or to a group's decoder key."""
-
-    target: str
-    message: Message
-    scope: str = "agent"
 
 
 class Backend:
@@ -157,24 +152,9 @@ class Backend:
     @classmethod
     def from_config(cls, cfg: CpslamConfig, fetch_image: Callable[[str, int], KeyframeImage |
                     None], **kwargs: Any) -> Backend:
-        """A back end with the settings of a whole config (``kwargs`` override/add)."""
-        from cpslam.common.field_config import field_spec
-        from cpslam.common.place_recognition import descriptor_dim
-        from cpslam.server.registry import registry_args
-
-        spec = field_spec(cfg.field)
-        dim = cfg.limits.descriptor_dim or descriptor_dim(cfg.place_recognition)
-        args: dict[str, Any] = {
-            "registry_args": registry_args(cfg.limits, dim),
-            "image_cache_bytes": int(cfg.limits.image_cache_mb * 2**20),
-            "seed": cfg.run.seed,
-            "decoders_factory": lambda: spec.decoders(cfg.run.seed),
-            "finetune_lr": cfg.mapping.lr_decoders,
-            "finetune_lr_features": cfg.mapping.lr_features,
-            "color_weight": cfg.mapping.color_weight,
-            "update_resend_after_s": cfg.transport.resend_after_s,
-            "update_max_points": cfg.transport.update_max_points,
-        }
+        """A back end with the settings of a whole config (`backend_args`; ``kwargs``
+        override/add)."""
+        spec, args = backend_args(cfg)
         args.update(kwargs)
         backend = cls(cfg.loop, cfg.federation, cfg.pose_graph, cfg.refinement, fetch_image, spec,
                       **args)
@@ -289,7 +269,7 @@ class Backend:
                                         "push_s": time.perf_counter() - t1})
         for agent, msg in self.registry.take_new_decoders():
             self.federator.submit(agent, msg)
-        out += _to_groups(self.federator.close_rounds())
+        out += to_groups(self.federator.close_rounds())
         out += self._share()
         return out
 
@@ -326,8 +306,7 @@ class Backend:
         """Add the pose graph's and push's times to the merge this step made into the group."""
         merge = self._open_merges.pop(group_id, None)
         if merge is not None:
-            merge["stages"].update({k: round(v, 4) for k, v in stages.items()})
-            merge["seconds"] = round(sum(merge["stages"].values()), 4)
+            add_stages(merge, stages)
 
     # ----------------------------------------------------------------------------- groups
 
@@ -348,46 +327,22 @@ class Backend:
         return out
 
     def _merge(self, loop: LoopRecord) -> list[Outgoing]:
-        t0 = time.perf_counter()
-        for agent in (loop.agent_a, loop.agent_b):  # a merge abandons both groups' rounds
-            self.federator.abandon(self.groups.group_of(agent).group_id)
-        group, _, T_new_old, joined = self.groups.merge_at_loop(
-            loop, self.kf_poses, lambda agent: self.registry.agents[agent].index)
-        for m in joined:  # the joining members' keyframes and corrected poses change frame
-            self.pipeline.regroup(m, group.group_id)
-            for key in [key for key in self.corrected if key[0] == m]:
-                self.corrected[key] = compose(T_new_old, self.corrected[key])
-        t1 = time.perf_counter()
-        out = _to_groups(self.federator.merged(group))
-        # Stages of the merge (s): the loop's verification, the alignment of the two frames,
-        # the decoders' fusion; the step adds the pose graph and the push to the members.
-        stages = {"verify_s": loop.seconds, "align_s": t1 - t0,
-                  "decoders_s": time.perf_counter() - t1}
-        merge = {"time": self.now() - self.t_start, "group": group.group_id, "joined": joined,
-                 "members": group.members, "loop_id": loop.loop_id,
-                 "stages": {k: round(v, 4) for k, v in stages.items()},
-                 "seconds": round(sum(stages.values()), 4)}
+        group, joined, decoders, stages = merge_groups(
+            loop, self.groups, self.pipeline, self.federator, self.corrected, self.kf_poses,
+            lambda agent: self.registry.agents[agent].index)
+        # The step adds the pose graph's and the push's stages (`_merge_timed`).
+        merge = merge_record(self.now() - self.t_start, group, joined, loop, stages)
         self.merges.append(merge)
         self._open_merges[group.group_id] = merge
-        return out
+        return to_groups(decoders)
 
     def optimise(self, groups: list[Group]) -> tuple[PoseGraph, PoseGraphResult | None,
                                                        list[LoopRecord], dict[str, Any]]:
         """Optimise the pose graph of these groups (every member's odometry in its group frame,
         the accepted loops between members of one group); keyframe corrections and loop
         outliers are kept. Returns the graph, its result (None for an empty graph), its loops
-        and the members' trajectories."""
-        graph = PoseGraph.from_config(self.pg_cfg)
-        loops, trajectories = add_group_tracks(graph, self.registry, groups, self.loops,
-                                               self.pg_cfg.loop_sigma_t, self.pg_cfg.loop_sigma_r)
-        if graph.num_nodes == 0:
-            return graph, None, loops, trajectories
-        result = graph.optimize()
-        for (agent, kf), T in result.poses.items():
-            self.corrected[(agent, kf)] = T
-        for lp in loops:
-            lp.outlier = lp.loop_id in result.outlier_loops
-        return graph, result, loops, trajectories
+        and the members' trajectories (`optimise_groups`)."""
+        return optimise_groups(self.pg_cfg, self.registry, groups, self.loops, self.corrected)
 
     def _optimise_group(self, group: Group) -> None:
         t0 = time.perf_counter()
@@ -440,7 +395,3 @@ class Backend:
     def load_state_dict(self, state: dict) -> None:
         """Restore a `state_dict`; the loop database is refilled from the keyframes."""
         restore_backend(self, state)
-
-
-def _to_groups(decoders: list[GroupDecoder]) -> list[Outgoing]:
-    return [Outgoing(msg.group_id, msg, scope="group") for msg in decoders]

@@ -48,17 +48,13 @@ from cpslam.protocol import (
     UpdateAck,
     keys,
 )
-from cpslam.server.backend import Backend, Outgoing
+from cpslam.server.backend import Backend
 from cpslam.server.bounds import fit_status, status_size
 from cpslam.server.export import export_run
+from cpslam.server.outgoing import Outgoing
 from cpslam.server.persist import AckGate, StateWriter, detach
 from cpslam.server.presence import AgentPresence
-from cpslam.server.traffic import (
-    KeyCounter,
-    PollTimes,
-    traffic_per_agent,
-    traffic_per_group,
-)
+from cpslam.server.traffic import KeyCounter, PollTimes, bus_metrics
 
 if TYPE_CHECKING:
     from cpslam.common.bus import Bus
@@ -318,19 +314,11 @@ class ServerNode:
                 self.persist()
                 self.publish(self.backend.step())
                 self.finalised = self.backend.finalise()
-                traffic, uptime = self.bus.stats(), time.monotonic() - self._t_start
-                received = self._received.table()
-                # The bus counts the agents' messages under the subscribed wildcard; per agent
-                # they come from the node's own counts under each concrete key.
-                by_key = {"sent": traffic["sent"], "received": {**traffic["received"], **received}}
-                self.finalised.metrics["bus"] = {
-                    "dropped": dict(self.dropped), "traffic": traffic,
-                    "received_by_key": received,
-                    "per_agent": traffic_per_agent(
-                        self.session, by_key, uptime,
-                        {a: sensor_seconds(e[2] for e in rec.frames.values())
-                         for a, rec in self.backend.registry.agents.items()}),
-                    "per_group": traffic_per_group(self.session, traffic["sent"], uptime)}
+                self.finalised.metrics["bus"] = bus_metrics(
+                    self.session, self.bus.stats(), time.monotonic() - self._t_start,
+                    self._received.table(), self.dropped,
+                    {a: sensor_seconds(e[2] for e in rec.frames.values())
+                     for a, rec in self.backend.registry.agents.items()})
                 self.finalised.metrics["process"] = {
                     "peak_rss_mb": peak_rss_mb(), "uptime_s": time.monotonic() - self._t_start,
                     "cpu_s": _cpu_seconds(), "poll": self.poll_times.summary()}

@@ -15,11 +15,12 @@ Points and frames anchored to a keyframe that has not arrived yet wait in a boun
 until it does (messages of one agent may arrive out of order).
 
 Everything a peer keys or sizes is capped (the ``limits`` config section, unpacked by
-`registry_args`): agent ids, messages ahead of the acknowledged seq, waiting points and
-frames, removed ids per delta and tombstones in total, drop reasons counted. Content is
-checked against the server's own config, never against what the first agent sent: descriptor
-length, point feature width, decoder tensor names and shapes; and for plausibility: finite
-poses with |t| below a bound, keyframe ids increasing with seq, sample counts below a bound.
+`registry_args`, which lives in `cpslam.server.settings`): agent ids, messages ahead of the
+acknowledged seq, waiting points and frames, removed ids per delta and tombstones in total,
+drop reasons counted. Content is checked against the server's own config, never against what
+the first agent sent: descriptor length, point feature width, decoder tensor names and shapes;
+and for plausibility: finite poses with |t| below a bound, keyframe ids increasing with seq,
+sample counts below a bound.
 
 Poses are kept in the agent's *own* world (its first camera): a keyframe reported after the
 agent applied a server alignment (``world_epoch`` > 0) is mapped back with the inverse of the
@@ -31,7 +32,6 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -51,9 +51,7 @@ from cpslam.server.bases import DecoderBases, submitted_weights
 from cpslam.server.plausibility import implausible
 from cpslam.server.points import PointTable
 from cpslam.server.records import AgentRecord, KeyframeRecord, record_from_state, record_state
-
-if TYPE_CHECKING:
-    from cpslam.common.config import LimitsConfig
+from cpslam.server.settings import registry_args
 
 __all__ = ["Registry", "registry_args"]
 
@@ -388,21 +386,3 @@ class Registry:
         self.new_keyframes = [(str(a), int(k)) for a, k in state["new_keyframes"]]
         self.new_decoders = []
 
-
-def registry_args(limits: LimitsConfig, descriptor_dim: int) -> dict[str, Any]:
-    """`Registry`'s keyword arguments from the ``limits`` section (`descriptor_dim`: the
-    length the place_recognition section gives, unless the section overrides it)."""
-    return dict(
-        descriptor_dim=limits.descriptor_dim or descriptor_dim,
-        max_agents=limits.max_agents,
-        max_pending_points=limits.max_pending_points,
-        max_pending_frames=limits.max_pending_frames,
-        max_seq_ahead=limits.max_seq_ahead,
-        max_removed_per_message=limits.max_removed_per_message,
-        max_tombstones=limits.max_tombstones,
-        max_translation_m=limits.max_translation_m,
-        max_federated_samples=limits.max_federated_samples,
-        max_counter_keys=limits.max_counter_keys,
-        max_keyframes_per_agent=limits.max_keyframes_per_agent,
-        max_points_per_agent=limits.max_points_per_agent,
-    )

@@ -3,7 +3,8 @@
 The sequential edges of the pose graph are the agent's odometry (``T_prev_kf_kf`` chained, see
 `AgentRecord.odometry`) and its frames' poses relative to their keyframes; the pose graph
 re-anchors them in the group frame with the member's alignment; `add_group_tracks` puts a
-set of groups' members and their loops into one graph.
+set of groups' members and their loops into one graph, `optimise_groups` optimises it and
+keeps the corrections.
 """
 
 from __future__ import annotations
@@ -19,11 +20,12 @@ from cpslam.server.records import AgentRecord
 from cpslam.server.registry import Registry
 
 if TYPE_CHECKING:
+    from cpslam.common.config.collab import PoseGraphConfig
     from cpslam.server.groups import Group
     from cpslam.server.loops import LoopRecord
 
 __all__ = ["add_group_tracks", "agent_trajectory", "corrected_frame_poses", "group_kf_poses",
-           "trajectory_poses"]
+           "optimise_groups", "trajectory_poses"]
 
 
 def agent_trajectory(rec: AgentRecord) -> AgentTrajectory | None:
@@ -117,6 +119,27 @@ def add_group_tracks(graph: PoseGraph, registry: Registry, groups: list[Group],
         graph.add_loop(lp.agent_a, lp.kf_a, lp.agent_b, lp.kf_b, np.asarray(lp.T_a_b),
                        sigma_t=sig_t, sigma_r=sig_r, loop_id=lp.loop_id)
     return used, trajectories
+
+
+def optimise_groups(cfg: PoseGraphConfig, registry: Registry, groups: list[Group],
+                    loops: list[LoopRecord], corrected: dict[tuple[str, int], np.ndarray]
+                    ) -> tuple[PoseGraph, PoseGraphResult | None, list[LoopRecord],
+                               dict[str, AgentTrajectory]]:
+    """One pose graph over these groups (`add_group_tracks`), optimised. Each keyframe's
+    corrected pose goes into `corrected` by ``(agent, kf)`` and each of the graph's loops is
+    marked an outlier or not. Returns the graph, its result (None for an empty graph), its
+    loops and the members' trajectories."""
+    graph = PoseGraph.from_config(cfg)
+    used, trajectories = add_group_tracks(graph, registry, groups, loops, cfg.loop_sigma_t,
+                                          cfg.loop_sigma_r)
+    if graph.num_nodes == 0:
+        return graph, None, used, trajectories
+    result = graph.optimize()
+    for (agent, kf), T in result.poses.items():
+        corrected[(agent, kf)] = T
+    for lp in used:
+        lp.outlier = lp.loop_id in result.outlier_loops
+    return graph, result, used, trajectories
 
 
 def corrected_frame_poses(graph: PoseGraph, result: PoseGraphResult,

@@ -4,10 +4,10 @@ The bus counts subscriptions under the subscribed expression (``agent/*/*`` for 
 agents publish), so `KeyCounter` counts what the server takes off that queue under each
 concrete key; what the server sends each agent, its group's decoders included, goes on the
 agent's own keys and is counted by the bus. The functions here turn those counts and
-`Bus.stats()` into the ``bus`` section of the server's ``metrics.json`` (documented in
-docs/daemons.md). Rates come per second of the server's uptime and, where the agents' frame
-stamps are known, per second of sensor time (`common.trajectory.sensor_seconds`): bandwidth
-that does not depend on how fast this machine processes frames.
+`Bus.stats()` into the ``bus`` section of the server's ``metrics.json`` (`bus_metrics`,
+documented in docs/daemons.md). Rates come per second of the server's uptime and, where the
+agents' frame stamps are known, per second of sensor time (`common.trajectory.sensor_seconds`):
+bandwidth that does not depend on how fast this machine processes frames.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ import numpy as np
 from cpslam.common.bounds import OTHER
 from cpslam.protocol import keys
 
-__all__ = ["KeyCounter", "PollTimes", "traffic_per_agent", "traffic_per_group"]
+__all__ = ["KeyCounter", "PollTimes", "bus_metrics", "traffic_per_agent", "traffic_per_group"]
 
 Table = dict[str, dict[str, int]]
 """{key or agent: {"messages": int, "bytes": int}}"""
@@ -81,6 +81,20 @@ class PollTimes:
                 "worst_s": self.worst_s, "p50_s": float(np.percentile(times, 50)),
                 "p99_s": float(np.percentile(times, 99)), "max_queue_depth": self.max_depth,
                 "mean_queue_depth": self._depth_sum / max(self.polls, 1)}
+
+
+def bus_metrics(session: str, traffic: Mapping[str, Table], seconds: float, received: Table,
+                dropped: Mapping[str, int],
+                sensor_s: Mapping[str, float | None] | None = None) -> dict:
+    """The ``bus`` section of ``metrics.json``: `traffic` (`Bus.stats()`), `received`
+    (`KeyCounter.table` of the agents' messages), `dropped` (key -> count), and the traffic per
+    agent and per group over `seconds` of uptime (`sensor_s`: see `traffic_per_agent`)."""
+    # The bus counts the agents' messages under the subscribed wildcard; per agent they come
+    # from the node's own counts under each concrete key.
+    by_key = {"sent": traffic["sent"], "received": {**traffic["received"], **received}}
+    return {"dropped": dict(dropped), "traffic": traffic, "received_by_key": received,
+            "per_agent": traffic_per_agent(session, by_key, seconds, sensor_s),
+            "per_group": traffic_per_group(session, traffic["sent"], seconds)}
 
 
 def traffic_per_agent(session: str, traffic: Mapping[str, Mapping], seconds: float,
