@@ -4,17 +4,64 @@ the request asks for, in its wire form.
 The server verifies loops and fine-tunes decoders on these images; a request's ``scale`` below
 1 asks for a smaller copy (colour area-averaged, depth resampled without mixing an edge's two
 sides, intrinsics scaled to match), which cuts the image bytes by about the square of it.
+`ImageReplies` answers smaller still when the agent's depth is noisy: registration on noisy
+depth is limited by the noise, which resampling averages, not by the pixel count (a reply
+states its own size and intrinsics, so the server takes it as it comes).
 """
 
 from __future__ import annotations
 
+from collections import deque
+
 import numpy as np
 
-from cpslam.common.camera import Intrinsics, resize_rgbd
+from cpslam.common.camera import Intrinsics, depth_noise, resize_rgbd
 from cpslam.protocol import KeyframeImage, KeyframeImageRequest
 from cpslam.protocol.images import depth_coding
 
-__all__ = ["image_reply", "rescale_reply"]
+__all__ = ["ImageReplies", "image_reply", "rescale_reply"]
+
+NOISE_WINDOW = 64
+"""Keyframes whose depth noise `ImageReplies` keeps (their median decides)."""
+
+
+class ImageReplies:
+    """How an agent answers the server's keyframe image requests.
+
+    Args:
+        rgb_codec, jpeg_quality: how the colour is compressed.
+        depth_step_mm_per_m2: depth as inverse depth in steps of this x z² mm; 0: mm.
+        noisy_scale: the largest scale of a reply while the agent's depth is noisy (1: as
+            asked).
+        noisy_depth_mm_per_m2: depth is noisy when the median `depth_noise` of the last
+            `NOISE_WINDOW` keyframes answered reaches this.
+    """
+
+    def __init__(self, rgb_codec: str = "jpeg", jpeg_quality: int = 90,
+                 depth_step_mm_per_m2: float = 0.0, noisy_scale: float = 1.0,
+                 noisy_depth_mm_per_m2: float = 0.3) -> None:
+        if not 0.0 < noisy_scale <= 1.0:
+            raise ValueError(f"ImageReplies: noisy_scale must be in (0, 1], got {noisy_scale}")
+        self.rgb_codec, self.jpeg_quality = rgb_codec, jpeg_quality
+        self.depth_step_mm_per_m2 = depth_step_mm_per_m2
+        self.noisy_scale, self.noisy_depth_mm_per_m2 = noisy_scale, noisy_depth_mm_per_m2
+        self.noise: deque[float] = deque(maxlen=NOISE_WINDOW)
+        """`depth_noise` (mm/m²) of the last keyframes answered, oldest first."""
+
+    @property
+    def noisy(self) -> bool:
+        """Whether the depth of the keyframes answered so far is noisy."""
+        return bool(self.noise) and float(np.median(self.noise)) >= self.noisy_depth_mm_per_m2
+
+    def answer(self, request: KeyframeImageRequest, rgb: np.ndarray, depth_m: np.ndarray,
+               intr: Intrinsics) -> KeyframeImage:
+        """`image_reply` to `request`, at most `noisy_scale` of the size while depth is noisy."""
+        if self.noisy_scale < 1.0:
+            self.noise.append(depth_noise(depth_m))
+            if self.noisy and request.scale > self.noisy_scale:
+                request = request.model_copy(update={"scale": self.noisy_scale})
+        return image_reply(request, rgb, depth_m, intr, self.rgb_codec, self.jpeg_quality,
+                           self.depth_step_mm_per_m2)
 
 
 def image_reply(request: KeyframeImageRequest, rgb: np.ndarray, depth_m: np.ndarray,

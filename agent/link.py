@@ -35,7 +35,7 @@ import torch
 from cpslam.agent.corrections import correct_keyframes, move_world, rigid
 from cpslam.agent.deltas import DecoderBase, SubmapMirror
 from cpslam.agent.foreign import merge_foreign
-from cpslam.agent.images import image_reply
+from cpslam.agent.images import ImageReplies
 from cpslam.agent.outbox import Outbox
 from cpslam.agent.submap import submap_delta_fields
 from cpslam.common.bounds import tensor_mismatch
@@ -84,7 +84,7 @@ class AgentLink:
         frames_every: frame poses are sent in batches of this many frames (and at keyframes).
         round_every_mappings: decoder weights are sent every this many mapping calls.
         federation: send decoder weights at all.
-        image_codec, jpeg_quality: how keyframe colour images are compressed for the server.
+        images: how keyframe image requests are answered (size, codecs; `ImageReplies`).
         incarnation: this run's incarnation id, stamped on every message (0: none drawn).
         outbox: where sent messages wait for their acks (default: `Outbox()`'s bounds).
         update_window: a `ServerUpdate` more than this many seqs above the last one applied
@@ -94,8 +94,6 @@ class AgentLink:
             how features travel (`SubmapMirror`).
         feature_rows: a known point the server acknowledged goes with its features alone.
         decoder_delta: send decoder weights as an int8 delta against the last group decoder.
-        depth_step_mm_per_m2: keyframe depth as inverse depth in steps of this x depth² mm
-            (`depth_coding`); 0: millimetres.
     """
 
     def __init__(
@@ -106,8 +104,7 @@ class AgentLink:
         frames_every: int = 10,
         round_every_mappings: int = 5,
         federation: bool = True,
-        image_codec: str = "jpeg",
-        jpeg_quality: int = 90,
+        images: ImageReplies | None = None,
         incarnation: int = 0,
         outbox: Outbox | None = None,
         update_window: int = 4096,
@@ -117,7 +114,6 @@ class AgentLink:
         feature_bits: int = 8,
         feature_rows: bool = False,
         decoder_delta: bool = False,
-        depth_step_mm_per_m2: float = 0.0,
     ) -> None:
         if min(frames_every, round_every_mappings, submap_every_mappings) < 1:
             raise ValueError(f"AgentLink: frames_every, round_every_mappings and "
@@ -128,8 +124,7 @@ class AgentLink:
         self.describe = describe
         self.frames_every, self.round_every_mappings = frames_every, round_every_mappings
         self.federation = federation
-        self.image_codec, self.jpeg_quality = image_codec, jpeg_quality
-        self.depth_step_mm_per_m2 = depth_step_mm_per_m2
+        self.images = images if images is not None else ImageReplies()
         self.own = int(odometry.agent_id)
         self.group_id = agent_id
         self.group_members = [agent_id]
@@ -373,8 +368,7 @@ class AgentLink:
         except KeyError:
             rgb, depth, intr = kf.rgb_small, kf.depth_small, store.intrinsics_small
         self.stats["images"] += 1
-        return image_reply(request, rgb, depth, intr, self.image_codec, self.jpeg_quality,
-                           self.depth_step_mm_per_m2)
+        return self.images.answer(request, rgb, depth, intr)
 
     # ------------------------------------------------------------------------- internals
 

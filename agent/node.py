@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from cpslam import protocol
+from cpslam.agent.images import ImageReplies
 from cpslam.agent.link import AgentLink
 from cpslam.agent.odometry import FrameResult, Odometry
 from cpslam.agent.outbox import Outbox
@@ -105,8 +106,11 @@ class AgentNode:
                               feature_codec=cfg.link.feature_codec,
                               feature_bits=cfg.link.feature_bits,
                               decoder_delta=cfg.link.decoder_delta,
-                              jpeg_quality=cfg.link.jpeg_quality,
-                              depth_step_mm_per_m2=cfg.link.depth_step_mm_per_m2)
+                              images=ImageReplies(
+                                  jpeg_quality=cfg.link.jpeg_quality,
+                                  depth_step_mm_per_m2=cfg.link.depth_step_mm_per_m2,
+                                  noisy_scale=cfg.link.noisy_image_scale,
+                                  noisy_depth_mm_per_m2=cfg.link.noisy_depth_mm_per_m2))
         self.refused: str | None = None
         """The server's reason when it refused this incarnation (the agent must stop)."""
         self.results: list[FrameResult] = []

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
+from statistics import NormalDist
 from typing import TYPE_CHECKING, Any
 
 import cv2
@@ -20,8 +21,8 @@ import numpy as np
 if TYPE_CHECKING:
     import torch
 
-__all__ = ["Intrinsics", "backproject_torch", "pixel_rays_torch", "resize_depth", "resize_rgbd",
-           "scaled_size"]
+__all__ = ["Intrinsics", "backproject_torch", "depth_noise", "pixel_rays_torch", "resize_depth",
+           "resize_rgbd", "scaled_size"]
 
 
 @dataclass(frozen=True)
@@ -234,6 +235,43 @@ def resize_depth(depth: np.ndarray, size: tuple[int, int], max_step: float = 0.0
     nearest = depth[np.ix_(np.clip(np.floor(y + 0.5).astype(np.int64), 0, height - 1),
                            np.clip(np.floor(x + 0.5).astype(np.int64), 0, width - 1))]
     return np.where(smooth, bilinear, nearest).astype(np.float32)
+
+
+def depth_noise(depth: np.ndarray, max_step: float = 0.03, keep: float = 0.9) -> float:
+    """A depth image's noise as k in sigma(z) = k z² (mm/m²; 0 for an empty image).
+
+    A plane's inverse depth changes linearly along image rows and columns, so its second
+    differences there are zero but for noise; depth noise that grows as z² (structured light,
+    stereo) is noise of constant size in inverse depth. The estimate is the RMS of the
+    second differences of inverse depth along rows and columns, over triples within
+    `max_step` (relative) of their middle depth (no edges), the largest ``1 - keep`` of them
+    left out (corners, curved surfaces), scaled to sigma for Gaussian noise. It recovers k of
+    Gaussian noise on a plane; an exact rendering stored in 0.2 mm steps gives about 0.01 at
+    2 m and 0.2 at 0.5 m, Kinect v1 frames (7-Scenes) 0.6-1.
+    """
+    if not 0.0 < keep < 1.0:
+        raise ValueError(f"depth_noise: keep must be in (0, 1), got {keep}")
+    z = np.nan_to_num(np.asarray(depth, np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    inv = np.where(z > 0, 1.0 / np.where(z > 0, z, 1.0), 0.0)
+    second = []
+    for axis in (1, 0):
+        n = z.shape[axis]
+        if n < 3:
+            continue
+        za, zb, zc = (np.take(z, range(i, n - 2 + i), axis=axis) for i in range(3))
+        ia, ib, ic = (np.take(inv, range(i, n - 2 + i), axis=axis) for i in range(3))
+        ok = (za > 0) & (zb > 0) & (zc > 0)
+        ok &= (np.abs(za - zb) <= max_step * zb) & (np.abs(zc - zb) <= max_step * zb)
+        second.append(np.abs(ia - 2.0 * ib + ic)[ok])
+    d2 = np.concatenate(second) if second else np.zeros(0)
+    if d2.size == 0:
+        return 0.0
+    kept = d2[d2 <= np.quantile(d2, keep)]
+    # a second difference of iid noise has variance 6 sigma²; keeping the central `keep`
+    # of a Gaussian keeps this fraction of its variance
+    t = NormalDist().inv_cdf(0.5 + keep / 2)
+    kept_var = 1.0 - 2.0 * t * math.exp(-t * t / 2) / math.sqrt(2 * math.pi) / keep
+    return float(1000.0 * np.sqrt(np.mean(np.square(kept)) / (6.0 * kept_var)))
 
 
 def backproject_torch(intr: Intrinsics, depth: torch.Tensor) -> torch.Tensor:

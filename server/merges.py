@@ -3,8 +3,8 @@ end's ``merges`` of ``metrics.json``, timed by stage (`merge_record`, `add_stage
 
 A merge changes what every member of both groups does, so the back end makes it as soon as
 the loop is verified; the same step then optimises the group's pose graph and pushes the
-members' updates, and adds those two stages to the entry. Split out of `backend` for size,
-with its inputs handed in (only the daemon imports the back end).
+members' updates, and adds those two stages to the entry. Its inputs are handed in
+(only the daemon imports the back end).
 """
 
 from __future__ import annotations

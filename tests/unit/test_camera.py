@@ -10,6 +10,7 @@ import torch
 from cpslam.common.camera import (
     Intrinsics,
     backproject_torch,
+    depth_noise,
     pixel_rays_torch,
     resize_rgbd,
     scaled_size,
@@ -200,3 +201,34 @@ def test_torch_helpers_match_numpy() -> None:
     assert torch.isfinite(depth_t.grad).all()
     with pytest.raises(ValueError, match="backproject_torch"):
         backproject_torch(intr, torch.zeros(3, 3))
+
+
+def _slanted_plane(height: int = 120, width: int = 160) -> np.ndarray:
+    """Depth of a slanted wall 1.6-2.5 m away (its inverse depth is linear in u and v)."""
+    u = np.linspace(-1.0, 1.0, width)[None, :]
+    v = np.linspace(-1.0, 1.0, height)[:, None]
+    return 1.0 / (0.5 + 0.1 * u + 0.05 * v)
+
+
+@pytest.mark.parametrize("k", [0.3, 1.0, 3.0])
+def test_depth_noise_recovers_noise_that_grows_as_depth_squared(k: float) -> None:
+    rng = np.random.default_rng(int(k * 10))
+    plane = _slanted_plane()
+    noisy = plane + rng.normal(0.0, k * 1e-3, plane.shape) * plane**2
+    assert depth_noise(noisy) == pytest.approx(k, rel=0.1)
+    # holes and a depth edge (another wall 1 m nearer) leave the estimate where it was
+    near = plane - 1.0
+    noisy[:, 100:] = (near + rng.normal(0.0, k * 1e-3, plane.shape) * near**2)[:, 100:]
+    noisy[40:50, 20:60] = 0.0
+    noisy[0, :5] = np.nan
+    assert depth_noise(noisy) == pytest.approx(k, rel=0.15)
+
+
+def test_depth_noise_of_exact_depth_is_its_storage_rounding() -> None:
+    plane = _slanted_plane()
+    assert depth_noise(plane) < 1e-6
+    # stored in 0.2 mm steps: sigma 0.058 mm, 0.01-0.02 mm/m² at 1.6-2.5 m
+    assert depth_noise(np.round(plane * 5000) / 5000) < 0.05
+    assert depth_noise(np.zeros((8, 8))) == 0.0 and depth_noise(np.ones((2, 2))) == 0.0
+    with pytest.raises(ValueError, match="keep"):
+        depth_noise(plane, keep=1.0)

@@ -375,6 +375,32 @@ def test_inverse_depth_reply_keeps_its_coding_when_answered_again(warm) -> None:
     assert half.width == round(back.width / 2)
 
 
+def test_noisy_depth_is_answered_at_the_noisy_scale_and_exact_depth_as_asked() -> None:
+    from cpslam.agent.images import ImageReplies
+
+    rng = np.random.default_rng(0)
+    intr = Intrinsics(fx=160.0, fy=160.0, cx=79.5, cy=59.5, width=160, height=120)
+    u = np.linspace(-1.0, 1.0, 160)[None, :]
+    v = np.linspace(-1.0, 1.0, 120)[:, None]
+    wall = (1.0 / (0.5 + 0.1 * u + 0.05 * v)).astype(np.float32)
+    noisy = (wall + rng.normal(0.0, 1.5e-3, wall.shape) * wall**2).astype(np.float32)
+    rgb = np.full((120, 160, 3), 128, np.uint8)
+    full = KeyframeImageRequest(agent_id="a0", kf_id=1)
+    replies = ImageReplies(noisy_scale=0.5, noisy_depth_mm_per_m2=0.3)
+    exact = replies.answer(full, rgb, wall, intr)
+    assert (exact.width, exact.height) == (160, 120) and not replies.noisy
+    for _ in range(2):  # the median of the keyframes seen decides
+        replies.answer(full, rgb, noisy, intr)
+    half = replies.answer(full, rgb, noisy, intr)
+    assert replies.noisy and (half.width, half.height, half.fx) == (80, 60, 80.0)
+    smaller = replies.answer(full.model_copy(update={"scale": 0.4}), rgb, noisy, intr)
+    assert smaller.width == 64  # a smaller request is answered as asked
+    blind = ImageReplies(noisy_scale=1.0)  # the default answers every request as asked
+    assert blind.answer(full, rgb, noisy, intr).width == 160 and not blind.noise
+    with pytest.raises(ValueError, match="noisy_scale"):
+        ImageReplies(noisy_scale=0.0)
+
+
 def test_joining_a_group_offers_weights_at_the_next_mapping() -> None:
     link = _link(rounds=100)  # without a merge, weights would wait for 100 mapping calls
     msgs = _run(link, 0, 3)
