@@ -32,13 +32,13 @@ class ImageReplies:
         rgb_codec, jpeg_quality: how the colour is compressed.
         depth_step_mm_per_m2: depth as inverse depth in steps of this x z² mm; 0: mm.
         noisy_scale: the largest scale of a reply while the agent's depth is noisy (1: as
-            asked).
+            asked, and no noise is measured).
         noisy_depth_mm_per_m2: depth is noisy when the median `depth_noise` of the last
             `NOISE_WINDOW` keyframes answered reaches this.
     """
 
     def __init__(self, rgb_codec: str = "jpeg", jpeg_quality: int = 90,
-                 depth_step_mm_per_m2: float = 0.0, noisy_scale: float = 1.0,
+                 depth_step_mm_per_m2: float = 0.5, noisy_scale: float = 0.5,
                  noisy_depth_mm_per_m2: float = 0.3) -> None:
         if not 0.0 < noisy_scale <= 1.0:
             raise ValueError(f"ImageReplies: noisy_scale must be in (0, 1], got {noisy_scale}")

@@ -10,9 +10,9 @@ The demo's setup run in-process (`cpslam run`'s lock-step loop on the in-memory 
 nodes and codec as over Zenoh): `cpslam dataset synth --scene apartment --agents 2
 --num-frames 300` (320x240, cached under runs/bench-data/), every third frame, keyframes every
 10 processed frames (`--scene`, `--scene-seed`: another synthetic scene, for data the
-defaults were not tuned on; `--real`: the shared 7-Scenes kitchen frames as two agents,
-`--real-split` slices, real depth noise and texture). Variants (the `link` section,
-docs/configuration.md):
+defaults were not tuned on; `--noise`: with Kinect-like depth noise; `--real`: the shared
+7-Scenes kitchen frames as two agents, `--real-split` slices, real depth noise and texture).
+Variants (the `link` section, docs/configuration.md):
 
 - before: every mapping call a delta of every point whose float16 features changed, full
   float32 decoders, no compression (the wire format before the link section, but for the
@@ -39,6 +39,8 @@ docs/configuration.md):
 - bits6, bits5, bits4: sub-map feature codes of that many bits (``link.feature_bits``);
   jpeg80: keyframe colour at JPEG quality 80; images-half-bits5, images-half-jpeg80-bits5:
   those together;
+- noise-blind: keyframe images at the size asked even when depth is noisy
+  (``link.noisy_image_scale`` 1);
 - depth-mm, depth0.5, depth1, depth1.5: keyframe depth in millimetres, or as inverse depth in
   steps of 0.5, 1 or 1.5 mm x depth² (``link.depth_step_mm_per_m2``); images-half-depth1-bits6:
   half-size images, inverse depth at 1 and 6-bit features together.
@@ -99,6 +101,7 @@ VARIANTS = {
     "images-half-bits5": ["loop.image_scale=0.5", "link.feature_bits=5"],
     "images-half-jpeg80-bits5": ["loop.image_scale=0.5", "link.jpeg_quality=80",
                                  "link.feature_bits=5"],
+    "noise-blind": ["link.noisy_image_scale=1"],
     "depth-mm": ["link.depth_step_mm_per_m2=0"],
     "depth0.5": ["link.depth_step_mm_per_m2=0.5"],
     "depth1": ["link.depth_step_mm_per_m2=1"],
@@ -124,6 +127,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--scene", default="apartment", choices=["apartment", "room"])
     parser.add_argument("--scene-seed", type=int, default=0, help="seed of the generated scene")
+    parser.add_argument("--noise", action="store_true", help="Kinect-like depth noise in the scene")
     parser.add_argument("--real", action="store_true", help="the 7-Scenes kitchen frames instead")
     parser.add_argument("--real-split", default="0:150:3,150:300:3",
                         help="frame slices of the two real agents, comma-separated")
@@ -139,6 +143,7 @@ def main() -> None:
         "seed": args.seed,
         "scene": "7-Scenes kitchen" if args.real else args.scene,
         "scene_seed": None if args.real else args.scene_seed,
+        "noise": None if args.real else args.noise,
         "real_split": args.real_split if args.real else None,
         "variants": {},
     }
@@ -147,7 +152,7 @@ def main() -> None:
         report["variants"][name] = run_variant(
             args.preset, args.frames, VARIANTS[name], args.seed, args.render_views,
             args.scene, args.scene_seed, args.real_split.split(",") if args.real else None,
-        )
+            args.noise)
         report["variants"][name]["wall_s"] = round(time.perf_counter() - t0, 1)
         print(f"{name}: {json.dumps(report['variants'][name]['summary'])}", flush=True)
     v = report["variants"]
@@ -170,7 +175,7 @@ def main() -> None:
 
 def run_variant(preset: str, frames: str, sets: list[str], seed: int, views: int,
                 scene: str = "apartment", scene_seed: int = 0,
-                real_split: list[str] | None = None) -> dict:
+                real_split: list[str] | None = None, noise: bool = False) -> dict:
     import tempfile
 
     from cpslam.agent.standalone import open_for_config
@@ -183,8 +188,8 @@ def run_variant(preset: str, frames: str, sets: list[str], seed: int, views: int
         seqs = [open_for_config(cfg, KITCHEN, frames=f) for f in real_split]
     else:
         paths = scene_data(
-            ROOT / "runs" / "bench-data", scene, 2, 300, 320, 240, scene_seed, show_progress=False
-        )
+            ROOT / "runs" / "bench-data", scene, 2, 300, 320, 240, scene_seed, show_progress=False,
+            noise=noise)
         seqs = [open_for_config(cfg, p, frames=frames) for p in paths]
     with tempfile.TemporaryDirectory() as tmp:
         result = run_collab(cfg, seqs, Path(tmp) / "run", "cpu", show_progress=False)

@@ -66,19 +66,22 @@ def frame_slice(walk: int, frames: int) -> str:
 
 
 def scene_data(data_dir: Path, scene: str, agents: int, walk: int, width: int, height: int,
-               seed: int, show_progress: bool = True, loop: bool = False) -> list[Path]:
+               seed: int, show_progress: bool = True, loop: bool = False,
+               noise: bool = False) -> list[Path]:
     """The agents' sequence folders of a synthetic scene, generated on first use (`loop`:
-    closed trajectories, as ``cpslam dataset synth --loop``)."""
+    closed trajectories, as ``cpslam dataset synth --loop``; `noise`: Kinect-like depth noise,
+    as ``--noise``)."""
     from cpslam.tools.synth import generate
 
     out = Path(data_dir) / (f"{scene}-{agents}x{walk}-{width}x{height}-s{seed}"
-                            + ("-loop" if loop else ""))
+                            + ("-loop" if loop else "") + ("-noise" if noise else ""))
     dirs = [out / f"agent_{i}" for i in range(agents)]
     if (out / "scene.json").is_file() and all(d.is_dir() for d in dirs):
         logger.info("scene cached in %s", out)
         return dirs
     return generate(out, scene=scene, agents=agents, frames=walk, width=width, height=height,
-                    seed=seed, loop=loop, overwrite=True, show_progress=show_progress).agent_dirs
+                    seed=seed, loop=loop, noise=noise, overwrite=True,
+                    show_progress=show_progress).agent_dirs
 
 
 def prepare_run_dir(run: Path, overwrite: bool = False) -> None:

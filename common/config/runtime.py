@@ -143,7 +143,7 @@ class LinkConfig(Section):
     """zstd level of the agent's messages of 1 kB or more; 0 sends them uncompressed."""
     jpeg_quality: int = Field(default=90, ge=1, le=100)
     """JPEG quality of the keyframe colour images sent to the server."""
-    depth_step_mm_per_m2: NonNegativeFloat = 0.0
+    depth_step_mm_per_m2: NonNegativeFloat = 0.5
     """Keyframe depth as inverse depth, in steps of this x depth² mm (0.1-50); 0: linear mm."""
     noisy_image_scale: float = Field(default=0.5, gt=0, le=1)
     """Keyframe images go at most this fraction of the processed size while depth is noisy."""

@@ -29,7 +29,6 @@ from cpslam.protocol import (
     ServerUpdate,
     SubmapDelta,
 )
-from cpslam.protocol.images import WIRE_DEPTH_SCALE
 
 INTR = Intrinsics(fx=64.0, fy=64.0, cx=39.5, cy=29.5, width=80, height=60)
 
@@ -326,9 +325,10 @@ def test_image_request_answered_from_the_keyframe_store(warm) -> None:
     full = store.intrinsics  # the processed frame's size: registration at full resolution
     assert (reply.width, reply.height, reply.fx) == (full.width, full.height, full.fx)
     rgb, depth = store.full_rgbd(1)
-    # 1 mm steps on the wire: off by half a millimetre at most
-    assert reply.depth_scale == WIRE_DEPTH_SCALE == 1000.0
-    np.testing.assert_allclose(reply.depth_metres(), depth, atol=0.5 / WIRE_DEPTH_SCALE + 1e-6)
+    # inverse depth in steps of 0.5 mm x depth^2 on the wire: off by half a step at most
+    assert (reply.depth_encoding, reply.depth_scale) == ("inverse", 2000.0)
+    step_m = 0.5e-3 * depth.astype(np.float64) ** 2
+    assert (np.abs(reply.depth_metres() - depth) <= 0.51 * step_m + 1e-6).all()
     assert rgb.shape == (full.height, full.width, 3)
     protocol.decode(protocol.encode(reply), expected=KeyframeImage)
     missing = link.answer_image(KeyframeImageRequest(agent_id="a0", kf_id=99))
@@ -395,7 +395,7 @@ def test_noisy_depth_is_answered_at_the_noisy_scale_and_exact_depth_as_asked() -
     assert replies.noisy and (half.width, half.height, half.fx) == (80, 60, 80.0)
     smaller = replies.answer(full.model_copy(update={"scale": 0.4}), rgb, noisy, intr)
     assert smaller.width == 64  # a smaller request is answered as asked
-    blind = ImageReplies(noisy_scale=1.0)  # the default answers every request as asked
+    blind = ImageReplies(noisy_scale=1.0)  # answers every request as asked
     assert blind.answer(full, rgb, noisy, intr).width == 160 and not blind.noise
     with pytest.raises(ValueError, match="noisy_scale"):
         ImageReplies(noisy_scale=0.0)
