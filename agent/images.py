@@ -38,7 +38,7 @@ class ImageReplies:
     """
 
     def __init__(self, rgb_codec: str = "jpeg", jpeg_quality: int = 90,
-                 depth_step_mm_per_m2: float = 0.5, noisy_scale: float = 0.5,
+                 depth_step_mm_per_m2: float = 0.5, noisy_scale: float = 1.0,
                  noisy_depth_mm_per_m2: float = 0.3) -> None:
         if not 0.0 < noisy_scale <= 1.0:
             raise ValueError(f"ImageReplies: noisy_scale must be in (0, 1], got {noisy_scale}")

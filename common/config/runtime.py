@@ -145,7 +145,7 @@ class LinkConfig(Section):
     """JPEG quality of the keyframe colour images sent to the server."""
     depth_step_mm_per_m2: NonNegativeFloat = 0.5
     """Keyframe depth as inverse depth, in steps of this x depth² mm (0.1-50); 0: linear mm."""
-    noisy_image_scale: float = Field(default=0.5, gt=0, le=1)
+    noisy_image_scale: float = Field(default=1.0, gt=0, le=1)
     """Keyframe images go at most this fraction of the processed size while depth is noisy."""
     noisy_depth_mm_per_m2: PositiveFloat = 0.3
     """Depth is noisy when recent keyframes' median noise sigma / depth² reaches this (mm/m²)."""
