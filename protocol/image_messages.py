@@ -162,11 +162,15 @@ class KeyframeImage(Message):
         return cls(depth=depth, depth_scale=depth_scale, depth_encoding=depth_encoding, **fields)
 
     def depth_metres(self) -> np.ndarray | None:
-        """Depth as float32 metres [H, W] (0 = invalid), or None if absent."""
+        """Depth as float32 metres [H, W] (0 = invalid, as is any depth float32 cannot hold),
+        or None if absent."""
         if self.depth is None:
             return None
         value = self.depth.astype(np.float64)
         if self.depth_encoding == "inverse":
-            return np.where(value > 0, self.depth_scale / np.maximum(value, 1.0),
-                            0.0).astype(np.float32)
-        return (value / self.depth_scale).astype(np.float32)
+            z = np.where(value > 0, self.depth_scale / np.maximum(value, 1.0), 0.0)
+        else:
+            z = value / self.depth_scale
+        with np.errstate(over="ignore"):
+            z = z.astype(np.float32)
+        return np.where(np.isfinite(z), z, np.float32(0.0))

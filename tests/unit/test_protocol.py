@@ -477,3 +477,13 @@ def test_inverse_depth_goes_in_steps_that_grow_as_depth_squared():
     assert (near.depth == 0).all()
     with pytest.raises(ValueError, match="step_mm_per_m2"):
         depth_coding(-1.0)
+
+
+@pytest.mark.parametrize(("encoding", "scale"), [("linear", 1e-300), ("inverse", 1e300)])
+def test_depth_beyond_float32_is_invalid(encoding: str, scale: float) -> None:
+    fields = _image_fields(width=3, height=2, rgb=None)
+    del fields["depth"]
+    msg = P.KeyframeImage(depth=np.array([[0, 1, 7], [65535, 2, 0]], np.uint16),
+                          depth_scale=scale, depth_encoding=encoding, **fields)
+    back = P.decode(P.encode(msg)).depth_metres()
+    assert back.dtype == np.float32 and np.isfinite(back).all() and (back == 0).all()
