@@ -152,8 +152,7 @@ class KeyframeImage(Message):
         if depth_m is not None:
             z = np.nan_to_num(np.asarray(depth_m, np.float64), nan=0.0, posinf=0.0, neginf=0.0)
             if depth_encoding == "inverse":
-                with np.errstate(divide="ignore"):
-                    scaled = np.where(z > 0, depth_scale / np.where(z > 0, z, 1.0), 0.0)
+                scaled = np.where(z > 0, depth_scale / np.where(z > 0, z, 1.0), 0.0)
             else:
                 scaled = z * depth_scale
             scaled = np.rint(scaled)
