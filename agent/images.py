@@ -6,7 +6,9 @@ The server verifies loops and fine-tunes decoders on these images; a request's `
 sides, intrinsics scaled to match), which cuts the image bytes by about the square of it.
 `ImageReplies` answers smaller still when the agent's depth is noisy: registration on noisy
 depth is limited by the noise, which resampling averages, not by the pixel count (a reply
-states its own size and intrinsics, so the server takes it as it comes).
+states its own size and intrinsics, so the server takes it as it comes). It also coarsens the
+depth's steps to a fraction of the measured noise: finer steps only spend bits on the noise,
+which PNG cannot compress.
 """
 
 from __future__ import annotations
@@ -24,6 +26,9 @@ __all__ = ["ImageReplies", "image_reply", "rescale_reply"]
 NOISE_WINDOW = 64
 """Keyframes whose depth noise `ImageReplies` keeps (their median decides)."""
 
+MAX_DEPTH_STEP = 50.0
+"""Coarsest inverse-depth step (mm/m²) a noise-scaled step reaches (the config's limit)."""
+
 
 class ImageReplies:
     """How an agent answers the server's keyframe image requests.
@@ -32,16 +37,22 @@ class ImageReplies:
         rgb_codec, jpeg_quality: how the colour is compressed.
         depth_step_mm_per_m2: depth as inverse depth in steps of this x z² mm; 0: mm.
         noisy_scale: the largest scale of a reply while the agent's depth is noisy (1: as
-            asked, and no noise is measured).
+            asked).
         noisy_depth_mm_per_m2: depth is noisy when the median `depth_noise` of the last
             `NOISE_WINDOW` keyframes answered reaches this.
+        step_noise_ratio: the inverse-depth step is at least this x that median noise (at
+            most `MAX_DEPTH_STEP`); 0 keeps `depth_step_mm_per_m2` (and millimetres stay
+            millimetres). Noise is measured only where this or `noisy_scale` needs it.
     """
 
     def __init__(self, rgb_codec: str = "jpeg", jpeg_quality: int = 90,
                  depth_step_mm_per_m2: float = 0.5, noisy_scale: float = 1.0,
-                 noisy_depth_mm_per_m2: float = 0.3) -> None:
+                 noisy_depth_mm_per_m2: float = 0.3, step_noise_ratio: float = 2.0) -> None:
         if not 0.0 < noisy_scale <= 1.0:
             raise ValueError(f"ImageReplies: noisy_scale must be in (0, 1], got {noisy_scale}")
+        if step_noise_ratio < 0.0:
+            raise ValueError(f"ImageReplies: step_noise_ratio must be >= 0, got {step_noise_ratio}")
+        self.step_noise_ratio = step_noise_ratio if depth_step_mm_per_m2 > 0 else 0.0
         self.rgb_codec, self.jpeg_quality = rgb_codec, jpeg_quality
         self.depth_step_mm_per_m2 = depth_step_mm_per_m2
         self.noisy_scale, self.noisy_depth_mm_per_m2 = noisy_scale, noisy_depth_mm_per_m2
@@ -53,15 +64,26 @@ class ImageReplies:
         """Whether the depth of the keyframes answered so far is noisy."""
         return bool(self.noise) and float(np.median(self.noise)) >= self.noisy_depth_mm_per_m2
 
+    @property
+    def depth_step(self) -> float:
+        """The inverse-depth step (mm/m²) of the next reply: `depth_step_mm_per_m2`, coarser
+        where `step_noise_ratio` x the median noise is."""
+        step = self.depth_step_mm_per_m2
+        if self.step_noise_ratio > 0 and self.noise:
+            step = max(step, min(MAX_DEPTH_STEP,
+                                 self.step_noise_ratio * float(np.median(self.noise))))
+        return step
+
     def answer(self, request: KeyframeImageRequest, rgb: np.ndarray, depth_m: np.ndarray,
                intr: Intrinsics) -> KeyframeImage:
-        """`image_reply` to `request`, at most `noisy_scale` of the size while depth is noisy."""
-        if self.noisy_scale < 1.0:
+        """`image_reply` to `request`, at most `noisy_scale` of the size while depth is noisy,
+        in the `depth_step` that the noise measured so far (this keyframe's included) sets."""
+        if self.noisy_scale < 1.0 or self.step_noise_ratio > 0:
             self.noise.append(depth_noise(depth_m))
-            if self.noisy and request.scale > self.noisy_scale:
-                request = request.model_copy(update={"scale": self.noisy_scale})
+        if self.noisy_scale < 1.0 and self.noisy and request.scale > self.noisy_scale:
+            request = request.model_copy(update={"scale": self.noisy_scale})
         return image_reply(request, rgb, depth_m, intr, self.rgb_codec, self.jpeg_quality,
-                           self.depth_step_mm_per_m2)
+                           self.depth_step)
 
 
 def image_reply(request: KeyframeImageRequest, rgb: np.ndarray, depth_m: np.ndarray,

@@ -110,7 +110,8 @@ class AgentNode:
                                   jpeg_quality=cfg.link.jpeg_quality,
                                   depth_step_mm_per_m2=cfg.link.depth_step_mm_per_m2,
                                   noisy_scale=cfg.link.noisy_image_scale,
-                                  noisy_depth_mm_per_m2=cfg.link.noisy_depth_mm_per_m2))
+                                  noisy_depth_mm_per_m2=cfg.link.noisy_depth_mm_per_m2,
+                                  step_noise_ratio=cfg.link.depth_step_noise_ratio))
         self.refused: str | None = None
         """The server's reason when it refused this incarnation (the agent must stop)."""
         self.results: list[FrameResult] = []

@@ -43,7 +43,9 @@ Variants (the `link` section, docs/configuration.md):
   (``link.noisy_image_scale`` 0.5);
 - depth-mm, depth0.5, depth1, depth1.5: keyframe depth in millimetres, or as inverse depth in
   steps of 0.5, 1 or 1.5 mm x depth² (``link.depth_step_mm_per_m2``); images-half-depth1-bits6:
-  half-size images, inverse depth at 1 and 6-bit features together.
+  half-size images, inverse depth at 1 and 6-bit features together;
+- step-fixed, noisy-half-step-fixed: the depth step fixed (``link.depth_step_noise_ratio`` 0)
+  at full size and with noisy-half; step-noise1, step-noise3: that ratio at 1 and 3.
 
 Per variant and agent: bytes per second of sensor time per message type (the server's
 counters in metrics.json), the joint se3 ATE of both global trajectories, the merge time, and
@@ -108,6 +110,10 @@ VARIANTS = {
     "depth1.5": ["link.depth_step_mm_per_m2=1.5"],
     "images-half-depth1-bits6": ["loop.image_scale=0.5", "link.depth_step_mm_per_m2=1",
                                  "link.feature_bits=6"],
+    "step-fixed": ["link.depth_step_noise_ratio=0"],
+    "noisy-half-step-fixed": ["link.noisy_image_scale=0.5", "link.depth_step_noise_ratio=0"],
+    "step-noise1": ["link.depth_step_noise_ratio=1"],
+    "step-noise3": ["link.depth_step_noise_ratio=3"],
 }
 
 

@@ -145,6 +145,8 @@ class LinkConfig(Section):
     """JPEG quality of the keyframe colour images sent to the server."""
     depth_step_mm_per_m2: NonNegativeFloat = 0.5
     """Keyframe depth as inverse depth, in steps of this x depth² mm (0.1-50); 0: linear mm."""
+    depth_step_noise_ratio: NonNegativeFloat = 2.0
+    """The depth step is at least this x the measured depth noise sigma / depth² (0: fixed)."""
     noisy_image_scale: float = Field(default=1.0, gt=0, le=1)
     """Keyframe images go at most this fraction of the processed size while depth is noisy."""
     noisy_depth_mm_per_m2: PositiveFloat = 0.3
