@@ -132,12 +132,14 @@ def record(
     """The recorded pieces and their wire recordings, ``[(sequence, frames, wire.rec)]``:
     `seq`, or a synthetic room cut into `sources` pieces of `frames` frames, each
     overlapping the next by half (two agents that walk one path in turn and share views),
-    each recorded alone (made once per cache folder)."""
+    each recorded alone (made once per cache folder and protocol version)."""
     from cpslam.common.config import load_config, override_config
     from cpslam.common.datasets import open_sequence
+    from cpslam.protocol import PROTOCOL_VERSION
     from cpslam.run import run_collab
 
     step = frames // 2
+    cache = cache / f"protocol{PROTOCOL_VERSION}"  # a recording holds encoded messages
     if seq is not None:
         base = cache / f"seq-{seq.resolve().name}"
     else:

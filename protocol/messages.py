@@ -10,7 +10,7 @@ from __future__ import annotations
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 
 from cpslam.protocol.arrays import ArraySpec
 from cpslam.protocol.base import (
@@ -37,10 +37,13 @@ __all__ = [
     "KeyframeImageRequest",
     "KeyframeImage",
     "check_points",
+    "descriptor_codes",
 ]
 
 MB = 1 << 20
 MAX_DESCRIPTOR = 65536
+DESCRIPTOR_PEAK = 127
+"""A descriptor's largest magnitude as an int8 code (`descriptor_codes`)."""
 MAX_FEATURE_DIM = 1024
 
 Ids = Annotated[np.ndarray, ArraySpec("int64", ("N",))]
@@ -77,21 +80,45 @@ class KeyframeMsg(Message):
     """Camera-to-world pose in the agent's current world frame (float64 [4, 4], m)."""
     T_prev_kf_kf: Pose | None = None
     """Pose of this keyframe in the previous keyframe's camera frame; None for the first."""
-    descriptor: Annotated[np.ndarray, ArraySpec("float16", ("D",), finite=True)]
-    """Global image descriptor, unit L2 norm (float16 [D], 1 <= D <= 65536; cosines between
-    descriptors move by about 1e-3 at half precision, far below the loop thresholds)."""
+    descriptor: Annotated[np.ndarray, ArraySpec("int8", ("D",))]
+    """Global image descriptor's direction as int8 codes [D], 1 <= D <= 65536, not all zero
+    (`unit_descriptor` normalises it; `descriptor_codes` scales the largest magnitude to 127,
+    which moves cosines between descriptors by less than 1e-3 on real frames).
+    From Python a float descriptor is turned into its codes."""
     n_points: Count = 0
     """Number of map points anchored to this keyframe when it was published."""
+
+    @field_validator("descriptor", mode="before")
+    @classmethod
+    def _codes(cls, value: object) -> object:
+        if isinstance(value, np.ndarray) and value.dtype.kind == "f":
+            return descriptor_codes(value)
+        return value
 
     @model_validator(mode="after")
     def _check(self) -> KeyframeMsg:
         d = self.descriptor.shape[0]
         if not 1 <= d <= MAX_DESCRIPTOR:
             raise ValueError(f"descriptor: length must be in [1, {MAX_DESCRIPTOR}], got {d}")
-        norm = float(np.linalg.norm(self.descriptor.astype(np.float64)))
-        if abs(norm - 1.0) > 1e-3:
-            raise ValueError(f"descriptor: must have unit L2 norm, got {norm:.6g}")
+        if not self.descriptor.any():
+            raise ValueError("descriptor: must not be all zero (it gives a direction)")
         return self
+
+    def unit_descriptor(self) -> np.ndarray:
+        """The descriptor as float32 [D] of unit L2 norm."""
+        d = self.descriptor.astype(np.float32)
+        return d / np.linalg.norm(d)
+
+
+def descriptor_codes(descriptor: np.ndarray) -> np.ndarray:
+    """int8 codes [D] of a descriptor's direction: its largest magnitude becomes
+    `DESCRIPTOR_PEAK` (ValueError for a descriptor that is empty, not finite or all zero)."""
+    d = np.asarray(descriptor, np.float64)
+    if d.ndim != 1 or not d.size:
+        raise ValueError(f"descriptor: expected a vector [D], got shape {d.shape}")
+    if not np.isfinite(d).all() or not d.any():
+        raise ValueError("descriptor: must be finite and not all zero")
+    return np.round(d * (DESCRIPTOR_PEAK / np.abs(d).max())).astype(np.int8)
 
 
 def check_points(

@@ -265,7 +265,7 @@ class Registry:
             frame_index=int(msg.frame_index),
             stamp=float(msg.stamp),
             T_own_kf=compose(invert(align), msg.T_world_cam),
-            descriptor=np.asarray(msg.descriptor, np.float32),
+            descriptor=msg.unit_descriptor(),
             T_prev_kf_kf=None if msg.T_prev_kf_kf is None else msg.T_prev_kf_kf.copy(),
         )
         rec.kf_seqs[kf] = int(msg.seq)

@@ -55,7 +55,7 @@ def test_round_trip_every_type(msg):
         data = decompress(data, P.max_bytes(msg.type_name()))
     wire = msgpack.unpackb(data, raw=False)
     assert list(wire)[:2] == ["type", "version"]
-    assert wire["version"] == P.PROTOCOL_VERSION == 6
+    assert wire["version"] == P.PROTOCOL_VERSION == 7
 
 
 def test_decoded_arrays_are_writable_native_copies():
@@ -121,10 +121,11 @@ def test_structural_errors(payload, needle):
 
 
 @pytest.mark.parametrize("zstd_level", [0, 3])
-@pytest.mark.parametrize(("msg_type", "old"), [("submap_delta", 1), ("keyframe", 3)])
+@pytest.mark.parametrize(("msg_type", "old"), [("submap_delta", 1), ("keyframe", 3),
+                                              ("keyframe", 6)])
 def test_old_version_is_refused_by_name(zstd_level, msg_type, old):
     wire = _wire(sample(msg_type))
-    wire["version"] = old  # 1: float16 features before compression; 3: float32 descriptors
+    wire["version"] = old  # 1: float16 features before compression; 3, 6: float descriptors
     payload = _pack(wire)
     if zstd_level:
         payload = compress(payload, zstd_level)
@@ -321,12 +322,38 @@ def test_pose_and_descriptor_checks():
     bottom[3, 0] = 1.0
     with pytest.raises(ValidationError, match=r"last row"):
         P.KeyframeMsg(**good, T_world_cam=bottom)
-    with pytest.raises(ValidationError, match="unit L2 norm"):
-        P.KeyframeMsg(**{**good, "descriptor": 2 * _unit(8)}, T_world_cam=np.eye(4))
+    with pytest.raises(ValidationError, match="all zero"):
+        P.KeyframeMsg(**{**good, "descriptor": np.zeros(8, np.int8)}, T_world_cam=np.eye(4))
+    with pytest.raises(ValidationError, match="finite"):
+        P.KeyframeMsg(**{**good, "descriptor": np.full(8, np.nan)}, T_world_cam=np.eye(4))
+    with pytest.raises(ValidationError, match="length"):
+        P.KeyframeMsg(**{**good, "descriptor": np.zeros(0, np.int8)}, T_world_cam=np.eye(4))
     with pytest.raises(ValidationError, match="finite"):
         P.KeyframeMsg(**{**good, "stamp": math.nan}, T_world_cam=np.eye(4))
     poses = random_poses(np.random.default_rng(0), 3)
     assert np.allclose(poses[:, :3, :3] @ poses[:, :3, :3].transpose(0, 2, 1), np.eye(3))
+
+
+def test_descriptor_codes_keep_the_direction():
+    """A float descriptor goes as int8 codes (its largest magnitude 127) and comes back as a
+    unit vector whose cosines with other descriptors moved by less than 5e-3 (these peaked
+    random vectors: 2.3e-3)."""
+    rng = np.random.default_rng(3)
+    d = np.abs(rng.standard_normal((20, 1536))) ** 2  # non-negative and peaked, like GeM
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    msgs = [P.KeyframeMsg(agent_id="a", seq=0, kf_id=i, frame_index=i, stamp=0.0,
+                          T_world_cam=np.eye(4), descriptor=3.0 * x) for i, x in enumerate(d)]
+    assert all(m.descriptor.dtype == np.int8 and np.abs(m.descriptor).max() == 127
+               for m in msgs)
+    back = np.stack([P.decode(P.encode(m), expected=P.KeyframeMsg).unit_descriptor()
+                     for m in msgs])
+    np.testing.assert_allclose(np.linalg.norm(back, axis=1), 1.0, atol=1e-6)
+    assert np.abs(back @ back.T - d @ d.T).max() < 5e-3
+    wire = _wire(msgs[0])
+    wire["descriptor"]["dtype"] = "float16"  # what version 6 sent
+    wire["descriptor"]["data"] = d[0].astype("<f2").tobytes()
+    with pytest.raises(P.ProtocolError, match="expected dtype int8"):
+        P.decode(_pack(wire))
 
 
 # --- images ----------------------------------------------------------------------------------
