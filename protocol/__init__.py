@@ -32,6 +32,7 @@ from cpslam.protocol.messages import (
     KeyframeImageRequest,
     KeyframeMsg,
     SubmapDelta,
+    descriptor_codes,
 )
 from cpslam.protocol.updates import (
     Ack,
@@ -60,6 +61,7 @@ __all__ = [
     "array_from_wire",
     "keys",
     "KeyframeMsg",
+    "descriptor_codes",
     "SubmapDelta",
     "DecoderWeights",
     "FramePoses",
