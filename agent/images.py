@@ -13,7 +13,7 @@ which PNG cannot compress.
 
 from __future__ import annotations
 
-from collections import deque
+from collections import OrderedDict
 
 import numpy as np
 
@@ -56,13 +56,14 @@ class ImageReplies:
         self.rgb_codec, self.jpeg_quality = rgb_codec, jpeg_quality
         self.depth_step_mm_per_m2 = depth_step_mm_per_m2
         self.noisy_scale, self.noisy_depth_mm_per_m2 = noisy_scale, noisy_depth_mm_per_m2
-        self.noise: deque[float] = deque(maxlen=NOISE_WINDOW)
-        """`depth_noise` (mm/m²) of the last keyframes answered, oldest first."""
+        self.noise: OrderedDict[int, float] = OrderedDict()
+        """`depth_noise` (mm/m²) of the last `NOISE_WINDOW` keyframes answered, by keyframe id,
+        oldest first (a keyframe answered again counts once)."""
 
     @property
     def noisy(self) -> bool:
         """Whether the depth of the keyframes answered so far is noisy."""
-        return bool(self.noise) and float(np.median(self.noise)) >= self.noisy_depth_mm_per_m2
+        return bool(self.noise) and self._median() >= self.noisy_depth_mm_per_m2
 
     @property
     def depth_step(self) -> float:
@@ -71,15 +72,21 @@ class ImageReplies:
         step = self.depth_step_mm_per_m2
         if self.step_noise_ratio > 0 and self.noise:
             step = max(step, min(MAX_DEPTH_STEP,
-                                 self.step_noise_ratio * float(np.median(self.noise))))
+                                 self.step_noise_ratio * self._median()))
         return step
+
+    def _median(self) -> float:
+        return float(np.median(list(self.noise.values())))
 
     def answer(self, request: KeyframeImageRequest, rgb: np.ndarray, depth_m: np.ndarray,
                intr: Intrinsics) -> KeyframeImage:
         """`image_reply` to `request`, at most `noisy_scale` of the size while depth is noisy,
         in the `depth_step` that the noise measured so far (this keyframe's included) sets."""
         if self.noisy_scale < 1.0 or self.step_noise_ratio > 0:
-            self.noise.append(depth_noise(depth_m))
+            if request.kf_id not in self.noise:
+                self.noise[request.kf_id] = depth_noise(depth_m)
+                while len(self.noise) > NOISE_WINDOW:
+                    self.noise.popitem(last=False)
         if self.noisy_scale < 1.0 and self.noisy and request.scale > self.noisy_scale:
             request = request.model_copy(update={"scale": self.noisy_scale})
         return image_reply(request, rgb, depth_m, intr, self.rgb_codec, self.jpeg_quality,

@@ -389,11 +389,14 @@ def test_noisy_depth_is_answered_at_the_noisy_scale_and_exact_depth_as_asked() -
     replies = ImageReplies(noisy_scale=0.5, noisy_depth_mm_per_m2=0.3)
     exact = replies.answer(full, rgb, wall, intr)
     assert (exact.width, exact.height) == (160, 120) and not replies.noisy
-    for _ in range(2):  # the median of the keyframes seen decides
-        replies.answer(full, rgb, noisy, intr)
-    half = replies.answer(full, rgb, noisy, intr)
+    for kf in (2, 3):  # the median of the keyframes seen decides
+        replies.answer(full.model_copy(update={"kf_id": kf}), rgb, noisy, intr)
+    half = replies.answer(full.model_copy(update={"kf_id": 4}), rgb, noisy, intr)
     assert replies.noisy and (half.width, half.height, half.fx) == (80, 60, 80.0)
-    smaller = replies.answer(full.model_copy(update={"scale": 0.4}), rgb, noisy, intr)
+    replies.answer(full, rgb, noisy, intr)  # keyframe 1 again: it keeps its first measure
+    assert list(replies.noise) == [1, 2, 3, 4] and replies.noise[1] < 0.1
+    smaller = replies.answer(full.model_copy(update={"scale": 0.4, "kf_id": 5}), rgb, noisy,
+                             intr)
     assert smaller.width == 64  # a smaller request is answered as asked
     blind = ImageReplies(noisy_scale=1.0, step_noise_ratio=0)  # answers as asked
     assert blind.answer(full, rgb, noisy, intr).width == 160 and not blind.noise
