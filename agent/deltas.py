@@ -136,12 +136,16 @@ class DecoderBase:
     Args:
         full_every: every this many messages answered against the agent's own weights, one
             goes full (>= 1; 1 never sends an own delta).
+        full_codec: full weights as "float16" (as float32 where one does not fit) or as
+            "int8" with one scale per row (half the bytes).
     """
 
-    def __init__(self, full_every: int = 10) -> None:
+    def __init__(self, full_every: int = 10, full_codec: str = "float16") -> None:
         if full_every < 1:
             raise ValueError(f"DecoderBase: full_every must be >= 1, got {full_every}")
-        self.full_every = full_every
+        if full_codec not in ("float16", "int8"):
+            raise ValueError(f"DecoderBase: full_codec must be float16 or int8, got {full_codec!r}")
+        self.full_every, self.full_codec = full_every, full_codec
         self.group_id: str | None = None
         self.round = 0
         self.tensors: dict[str, np.ndarray] = {}
@@ -157,8 +161,9 @@ class DecoderBase:
 
     def fields(self, group_id: str, weights: dict[str, np.ndarray]) -> dict[str, Any]:
         """`DecoderWeights` fields for `weights`: an int8 delta against `group_id`'s loaded
-        decoder, else against the own weights the server holds, else the full weights (float16
-        when every one fits, which the server's copy then is). No
+        decoder, else against the own weights the server holds, else the full weights (int8
+        with `full_codec` "int8"; else float16 when every one fits, which the server's copy
+        then is). No
         own delta while an earlier message is unacknowledged: the server keeps only the
         newest own weights it took, so by the time it reads this one it may hold that
         message's weights instead of the acknowledged ones."""
@@ -172,6 +177,8 @@ class DecoderBase:
             and _fits(self.own, weights)
         ):
             return {"base_seq": self.own_seq, **_delta(weights, self.own)}
+        if self.full_codec == "int8":
+            return _delta(weights)
         if all(np.abs(v).max(initial=0.0) <= _F16_MAX for v in weights.values()):
             return {"tensors_f16": {k: v.astype(np.float16) for k, v in weights.items()}}
         return {"tensors": weights}
@@ -182,15 +189,15 @@ class DecoderBase:
         if "tensors" in fields or "tensors_f16" in fields:
             full = fields.get("tensors", fields.get("tensors_f16"))
             held = {k: np.asarray(v, np.float32) for k, v in full.items()}
-        else:  # what the server rebuilds: the base plus the dequantised delta
-            base = self.tensors if "base_round" in fields else self.own
-            held = add_delta(
-                base,
-                {
-                    k: dequantise_rows(q, fields["tensor_scales"][k])
-                    for k, q in fields["tensors_int8"].items()
-                },
-            )
+        else:  # what the server rebuilds: the base (if any) plus the dequantised values
+            values = {k: dequantise_rows(q, fields["tensor_scales"][k])
+                      for k, q in fields["tensors_int8"].items()}
+            if "base_round" in fields:
+                held = add_delta(self.tensors, values)
+            elif "base_seq" in fields:
+                held = add_delta(self.own, values)
+            else:
+                held = values
         self._sent = (seq, held)
         self._chain += 1
 
@@ -205,8 +212,10 @@ def _fits(base: dict[str, np.ndarray], weights: dict[str, np.ndarray]) -> bool:
     return set(base) == set(weights) and all(base[k].shape == weights[k].shape for k in weights)
 
 
-def _delta(weights: dict[str, np.ndarray], base: dict[str, np.ndarray]) -> dict[str, Any]:
+def _delta(weights: dict[str, np.ndarray], base: dict[str, np.ndarray] | None = None
+           ) -> dict[str, Any]:
+    """int8 fields of `weights` minus `base` (None: the weights themselves)."""
     q, scales = {}, {}
     for name, value in weights.items():
-        q[name], scales[name] = quantise_rows(value - base[name])
+        q[name], scales[name] = quantise_rows(value if base is None else value - base[name])
     return {"tensors_int8": q, "tensor_scales": scales}

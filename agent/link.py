@@ -94,6 +94,7 @@ class AgentLink:
             how features travel (`SubmapMirror`).
         feature_rows: a known point the server acknowledged goes with its features alone.
         decoder_delta: send decoder weights as an int8 delta against the last group decoder.
+        decoder_full_codec: full decoder weights as "float16" or "int8" (`DecoderBase`).
     """
 
     def __init__(
@@ -114,6 +115,7 @@ class AgentLink:
         feature_bits: int = 8,
         feature_rows: bool = False,
         decoder_delta: bool = False,
+        decoder_full_codec: str = "float16",
     ) -> None:
         if min(frames_every, round_every_mappings, submap_every_mappings) < 1:
             raise ValueError(f"AgentLink: frames_every, round_every_mappings and "
@@ -149,7 +151,7 @@ class AgentLink:
         self.submap_every_mappings = submap_every_mappings
         self.feature_rows = feature_rows
         self.decoder_delta = decoder_delta
-        self.decoder_base = DecoderBase()
+        self.decoder_base = DecoderBase(full_codec=decoder_full_codec)
         self._submap_mappings = 0
         self._mappings = 0
         self._samples = 0

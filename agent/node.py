@@ -106,6 +106,7 @@ class AgentNode:
                               feature_codec=cfg.link.feature_codec,
                               feature_bits=cfg.link.feature_bits,
                               decoder_delta=cfg.link.decoder_delta,
+                              decoder_full_codec=cfg.link.decoder_full_codec,
                               images=ImageReplies(
                                   jpeg_quality=cfg.link.jpeg_quality,
                                   depth_step_mm_per_m2=cfg.link.depth_step_mm_per_m2,

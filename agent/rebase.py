@@ -70,7 +70,7 @@ def _reset(link: AgentLink, incarnation: int) -> None:
     link.group_id, link.group_members = link.agent_id, [link.agent_id]
     link.round = 0
     link._decoders_waiting = {}
-    link.decoder_base = DecoderBase()
+    link.decoder_base = DecoderBase(full_codec=link.decoder_base.full_codec)
     link.mirror = SubmapMirror(link.mirror.features.shape[1], link.mirror.threshold,
                                link.mirror.codec, link.mirror.bits)
     link._submap_mappings = 0

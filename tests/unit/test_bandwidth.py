@@ -442,6 +442,33 @@ def test_own_decoder_chain_follows_acks_and_goes_full_every_n():
     assert reg.agents["a"].decoder_seq == 6
 
 
+def test_full_decoder_weights_as_int8_are_rebuilt_as_the_agent_predicts():
+    """With ``full_codec`` int8 the full messages go as int8 rows (63 % of the float16 bytes
+    for these 32-wide rows, the scales included), within half a step of each row's scale;
+    the server holds exactly what the agent predicts, and the own deltas after them stay in
+    step."""
+    agent, reg = DecoderBase(full_every=3, full_codec="int8"), Registry(4)
+    w = _weights(1)
+    f16 = P.encoded_size(_send_decoder(DecoderBase(), 0, w))
+    for seq in range(4):
+        w = {k: v + 0.01 * (seq + 1) for k, v in w.items()}
+        msg = _send_decoder(agent, seq, w)
+        if seq in (0, 3):  # full
+            assert msg.tensors_int8 is not None and msg.base_seq is None
+            assert P.encoded_size(msg) < 0.7 * f16
+            for k, v in w.items():
+                step = np.atleast_1d(msg.tensor_scales[k]).reshape(-1, *[1] * max(v.ndim - 1, 0))
+                assert np.all(np.abs(msg.values()[k] - v) <= 0.5 * step + 1e-7)
+        else:
+            assert msg.base_seq == seq - 1
+        reg.handle(P.decode(P.encode(msg)))
+        agent.acked(seq)
+        for k in w:
+            np.testing.assert_array_equal(reg.agents["a"].decoder[k], agent.own[k])
+    with pytest.raises(ValueError, match="full_codec"):
+        DecoderBase(full_codec="float32")
+
+
 def test_no_own_delta_while_an_earlier_decoder_message_is_unacknowledged():
     """Two decoder messages before the first one's ack: the server takes the first and keeps
     only its weights, so the second must not be a delta against the older acknowledged ones
