@@ -148,7 +148,7 @@ class LinkConfig(Section):
     depth_step_mm_per_m2: NonNegativeFloat = 0.5
     """Keyframe depth as inverse depth, in steps of this x depth² mm (0.1-50); 0: linear mm."""
     depth_step_noise_ratio: NonNegativeFloat = 2.0
-    """The depth step is at least this x the measured depth noise sigma / depth² (0: fixed)."""
+    """The depth step is at least this x the measured noise sigma / depth², up to 1.5 (0: fixed)."""
     noisy_image_scale: float = Field(default=1.0, gt=0, le=1)
     """Keyframe images go at most this fraction of the processed size while depth is noisy."""
     noisy_depth_mm_per_m2: PositiveFloat = 0.3

@@ -407,28 +407,32 @@ def test_noisy_depth_is_answered_at_the_noisy_scale_and_exact_depth_as_asked() -
 
 
 def test_depth_steps_follow_the_measured_noise() -> None:
-    """Inverse depth goes in steps of twice the noise (sigma / z²) measured so far: the
-    noisy plane (1.5 mm/m²) in steps near 3 mm/m² and within a step of its values, the
-    exact one in the configured 0.5; millimetres stay millimetres."""
-    from cpslam.agent.images import ImageReplies
+    """Inverse depth goes in steps of twice the noise (sigma / z²) measured so far, at most
+    `MAX_NOISE_STEP`: a plane with noise 0.6 mm/m² in steps near 1.2 mm/m² and within half a
+    step of its values, one with noise 1.5 in steps of 1.5, the exact one in the configured
+    0.5; millimetres stay millimetres."""
+    from cpslam.agent.images import MAX_NOISE_STEP, ImageReplies
 
     rng = np.random.default_rng(1)
     intr = Intrinsics(fx=160.0, fy=160.0, cx=79.5, cy=59.5, width=160, height=120)
     u = np.linspace(-1.0, 1.0, 160)[None, :]
     v = np.linspace(-1.0, 1.0, 120)[:, None]
     wall = (1.0 / (0.5 + 0.1 * u + 0.05 * v)).astype(np.float32)
-    noisy = (wall + rng.normal(0.0, 1.5e-3, wall.shape) * wall**2).astype(np.float32)
     rgb = np.full((120, 160, 3), 128, np.uint8)
     full = KeyframeImageRequest(agent_id="a0", kf_id=1)
     exact = ImageReplies(depth_step_mm_per_m2=0.5).answer(full, rgb, wall, intr)
     assert exact.depth_encoding == "inverse" and exact.depth_scale == pytest.approx(2000.0)
-    replies = ImageReplies(depth_step_mm_per_m2=0.5)
-    reply = replies.answer(full, rgb, noisy, intr)
-    step = 1000.0 / reply.depth_scale
-    assert 2.4 < step < 3.6 and step == pytest.approx(replies.depth_step)
-    # what the server decodes is the depth to within half a step of z² (mm at 1 m)
-    err_mm = np.abs(reply.depth_metres() - noisy) / noisy**2 * 1e3
-    assert err_mm.max() <= 0.5 * step * 1.01
+    steps = []
+    for sigma in (0.6e-3, 1.5e-3):
+        noisy = (wall + rng.normal(0.0, sigma, wall.shape) * wall**2).astype(np.float32)
+        replies = ImageReplies(depth_step_mm_per_m2=0.5)
+        reply = replies.answer(full, rgb, noisy, intr)
+        steps.append(1000.0 / reply.depth_scale)
+        assert steps[-1] == pytest.approx(replies.depth_step)
+        # what the server decodes is the depth to within half a step of z² (mm at 1 m)
+        err_mm = np.abs(reply.depth_metres() - noisy) / noisy**2 * 1e3
+        assert err_mm.max() <= 0.5 * steps[-1] * 1.01
+    assert 1.0 < steps[0] < 1.4 and steps[1] == pytest.approx(MAX_NOISE_STEP)
     mm = ImageReplies(depth_step_mm_per_m2=0.0).answer(full, rgb, noisy, intr)
     assert mm.depth_encoding == "linear"
 
