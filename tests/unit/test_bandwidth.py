@@ -359,6 +359,30 @@ def test_decoder_from_a_quantised_delta_renders_like_the_unquantised_one():
         assert change > 0 and err <= 0.02 * change, (key, float(err), float(change))
 
 
+def test_decoder_from_full_int8_weights_renders_like_the_exact_one():
+    """Tolerance: full weights as int8 rows (each off by at most 1/254 of its row's peak,
+    about 1/440 RMS) move the render less than 15 % of what noise of 5 % of each row's peak
+    does (5-7 % measured, about what a render near linear in such small changes gives)."""
+    point_map, exact = _plane_map(), SPEC.decoders(0)
+    weights = {k: v.numpy() for k, v in exact.state_dict().items()}
+    fields = DecoderBase(full_codec="int8").fields("a", weights)
+    msg = P.decode(P.encode(
+        P.DecoderWeights(agent_id="a", seq=0, group_id="a", round=0, n_samples=1, **fields)))
+    assert msg.tensors_int8 is not None
+    rebuilt, noisy = SPEC.decoders(0), SPEC.decoders(0)
+    rebuilt.load_state_dict({k: torch.as_tensor(v) for k, v in msg.values().items()})
+    gen = torch.Generator().manual_seed(5)
+    noisy.load_state_dict({
+        k: v + 0.05 * v.abs().amax(dim=-1, keepdim=True) * torch.randn(v.shape, generator=gen)
+        for k, v in exact.state_dict().items()})
+    ref, got, far = (_render(point_map, d) for d in (exact, rebuilt, noisy))
+    assert (ref["acc"] > 0).any()
+    for key in ("color", "depth"):
+        change = (far[key] - ref[key]).abs().mean()
+        err = (got[key] - ref[key]).abs().mean()
+        assert change > 0 and err <= 0.15 * change, (key, float(err), float(change))
+
+
 def test_int8_features_render_like_float16_ones():
     """Tolerance: int8 features (off by at most 1/254 of a point's peak, about 1/1000 on
     average) move the render less than 5 % of what noise of 10 % of the peak does."""
