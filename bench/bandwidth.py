@@ -46,7 +46,8 @@ Variants (the `link` section, docs/configuration.md):
   half-size images, inverse depth at 1 and 6-bit features together;
 - step-fixed, noisy-half-step-fixed: the depth step fixed (``link.depth_step_noise_ratio`` 0)
   at full size and with noisy-half; step-noise1, step-noise3: that ratio at 1 and 3;
-- decoder-int8: full decoder weights as int8, one scale per row (``link.decoder_full_codec``).
+- decoder-int8, decoder-f16: full decoder weights as int8 rows with one scale each, or as
+  float16 (``link.decoder_full_codec``).
 
 Per variant and agent: bytes per second of sensor time per message type (the server's
 counters in metrics.json), the joint se3 ATE of both global trajectories, the merge time, and
@@ -116,6 +117,7 @@ VARIANTS = {
     "step-noise1": ["link.depth_step_noise_ratio=1"],
     "step-noise3": ["link.depth_step_noise_ratio=3"],
     "decoder-int8": ["link.decoder_full_codec=int8"],
+    "decoder-f16": ["link.decoder_full_codec=float16"],
 }
 
 

@@ -139,7 +139,7 @@ class LinkConfig(Section):
     """Bits of an int8 feature code (levels +-(2^(bits-1)-1)); zstd packs fewer bits smaller."""
     decoder_delta: bool = True
     """Send decoder weights as int8 deltas against the last weights the server agreed on."""
-    decoder_full_codec: Literal["float16", "int8"] = "float16"
+    decoder_full_codec: Literal["float16", "int8"] = "int8"
     """Full decoder weights (the first, and every tenth of an agent's own): float16 or int8."""
     zstd_level: int = Field(default=3, ge=0, le=22)
     """zstd level of the agent's messages of 1 kB or more; 0 sends them uncompressed."""
