@@ -327,6 +327,15 @@ def _render(point_map, decoders) -> dict[str, torch.Tensor]:
         )
 
 
+def _assert_closer(ref: dict, got: dict, far: dict, fraction: float) -> None:
+    """`got` renders colour and depth closer to `ref` than `fraction` of how far `far` does
+    (the reference change must be non-zero)."""
+    for key in ("color", "depth"):
+        change = (far[key] - ref[key]).abs().mean()
+        err = (got[key] - ref[key]).abs().mean()
+        assert change > 0 and err <= fraction * change, (key, float(err), float(change))
+
+
 def test_decoder_from_a_quantised_delta_renders_like_the_unquantised_one():
     """Tolerance: the quantised decoder's render is closer to the exact one than 2 % of the
     change the delta itself makes (its elements are off by at most 1/254 of a row's peak)."""
@@ -353,10 +362,7 @@ def test_decoder_from_a_quantised_delta_renders_like_the_unquantised_one():
     on_base.load_state_dict(base)
     ref, got, old = (_render(point_map, d) for d in (exact, rebuilt, on_base))
     assert (ref["acc"] > 0).any()
-    for key in ("color", "depth"):
-        change = (old[key] - ref[key]).abs().mean()
-        err = (got[key] - ref[key]).abs().mean()
-        assert change > 0 and err <= 0.02 * change, (key, float(err), float(change))
+    _assert_closer(ref, got, old, 0.02)
 
 
 def test_decoder_from_full_int8_weights_renders_like_the_exact_one():
@@ -377,10 +383,7 @@ def test_decoder_from_full_int8_weights_renders_like_the_exact_one():
         for k, v in exact.state_dict().items()})
     ref, got, far = (_render(point_map, d) for d in (exact, rebuilt, noisy))
     assert (ref["acc"] > 0).any()
-    for key in ("color", "depth"):
-        change = (far[key] - ref[key]).abs().mean()
-        err = (got[key] - ref[key]).abs().mean()
-        assert change > 0 and err <= 0.15 * change, (key, float(err), float(change))
+    _assert_closer(ref, got, far, 0.15)
 
 
 def test_int8_features_render_like_float16_ones():
@@ -400,10 +403,7 @@ def test_int8_features_render_like_float16_ones():
     )
     point_map.set_features(rows, feats + noise)
     noisy = _render(point_map, decoders)
-    for key in ("color", "depth"):
-        change = (noisy[key] - ref[key]).abs().mean()
-        err = (got[key] - ref[key]).abs().mean()
-        assert change > 0 and err <= 0.05 * change, (key, float(err), float(change))
+    _assert_closer(ref, got, noisy, 0.05)
 
 
 # --- bytes per sensor second -----------------------------------------------------------------
