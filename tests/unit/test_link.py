@@ -375,17 +375,23 @@ def test_inverse_depth_reply_keeps_its_coding_when_answered_again(warm) -> None:
     assert half.width == round(back.width / 2)
 
 
-def test_noisy_depth_is_answered_at_the_noisy_scale_and_exact_depth_as_asked() -> None:
-    from cpslam.agent.images import ImageReplies
-
-    rng = np.random.default_rng(0)
+def _wall() -> tuple[Intrinsics, np.ndarray, np.ndarray, KeyframeImageRequest]:
+    """A 160x120 camera, the exact depth [H, W] (m) of a slanted wall 1.5-2.9 m away, grey
+    colour and a full-size image request for keyframe 1."""
     intr = Intrinsics(fx=160.0, fy=160.0, cx=79.5, cy=59.5, width=160, height=120)
     u = np.linspace(-1.0, 1.0, 160)[None, :]
     v = np.linspace(-1.0, 1.0, 120)[:, None]
     wall = (1.0 / (0.5 + 0.1 * u + 0.05 * v)).astype(np.float32)
+    return (intr, wall, np.full((120, 160, 3), 128, np.uint8),
+            KeyframeImageRequest(agent_id="a0", kf_id=1))
+
+
+def test_noisy_depth_is_answered_at_the_noisy_scale_and_exact_depth_as_asked() -> None:
+    from cpslam.agent.images import ImageReplies
+
+    rng = np.random.default_rng(0)
+    intr, wall, rgb, full = _wall()
     noisy = (wall + rng.normal(0.0, 1.5e-3, wall.shape) * wall**2).astype(np.float32)
-    rgb = np.full((120, 160, 3), 128, np.uint8)
-    full = KeyframeImageRequest(agent_id="a0", kf_id=1)
     replies = ImageReplies(noisy_scale=0.5, noisy_depth_mm_per_m2=0.3)
     exact = replies.answer(full, rgb, wall, intr)
     assert (exact.width, exact.height) == (160, 120) and not replies.noisy
@@ -414,12 +420,7 @@ def test_depth_steps_follow_the_measured_noise() -> None:
     from cpslam.agent.images import MAX_NOISE_STEP, ImageReplies
 
     rng = np.random.default_rng(1)
-    intr = Intrinsics(fx=160.0, fy=160.0, cx=79.5, cy=59.5, width=160, height=120)
-    u = np.linspace(-1.0, 1.0, 160)[None, :]
-    v = np.linspace(-1.0, 1.0, 120)[:, None]
-    wall = (1.0 / (0.5 + 0.1 * u + 0.05 * v)).astype(np.float32)
-    rgb = np.full((120, 160, 3), 128, np.uint8)
-    full = KeyframeImageRequest(agent_id="a0", kf_id=1)
+    intr, wall, rgb, full = _wall()
     exact = ImageReplies(depth_step_mm_per_m2=0.5).answer(full, rgb, wall, intr)
     assert exact.depth_encoding == "inverse" and exact.depth_scale == pytest.approx(2000.0)
     steps = []
