@@ -8,7 +8,8 @@ sides, intrinsics scaled to match), which cuts the image bytes by about the squa
 depth is limited by the noise, which resampling averages, not by the pixel count (a reply
 states its own size and intrinsics, so the server takes it as it comes). It also coarsens the
 depth's steps to a fraction of the measured noise: finer steps only spend bits on the noise,
-which PNG cannot compress.
+which no lossless codec can compress; a smaller reply's resampling averages the noise, and
+its steps shrink with it.
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ class ImageReplies:
 
     Args:
         rgb_codec, jpeg_quality: how the colour is compressed.
+        depth_codec: how the depth is compressed (lossless: png or zstd-delta).
         depth_step_mm_per_m2: depth as inverse depth in steps of this x z² mm; 0: mm.
         noisy_scale: the largest scale of a reply while the agent's depth is noisy (1: as
             asked).
@@ -50,13 +52,14 @@ class ImageReplies:
 
     def __init__(self, rgb_codec: str = "jpeg", jpeg_quality: int = 90,
                  depth_step_mm_per_m2: float = 0.5, noisy_scale: float = 1.0,
-                 noisy_depth_mm_per_m2: float = 0.3, step_noise_ratio: float = 2.0) -> None:
+                 noisy_depth_mm_per_m2: float = 0.3, step_noise_ratio: float = 2.0,
+                 depth_codec: str = "zstd-delta") -> None:
         if not 0.0 < noisy_scale <= 1.0:
             raise ValueError(f"ImageReplies: noisy_scale must be in (0, 1], got {noisy_scale}")
         if step_noise_ratio < 0.0:
             raise ValueError(f"ImageReplies: step_noise_ratio must be >= 0, got {step_noise_ratio}")
         self.step_noise_ratio = step_noise_ratio if depth_step_mm_per_m2 > 0 else 0.0
-        self.rgb_codec, self.jpeg_quality = rgb_codec, jpeg_quality
+        self.rgb_codec, self.jpeg_quality, self.depth_codec = rgb_codec, jpeg_quality, depth_codec
         self.depth_step_mm_per_m2 = depth_step_mm_per_m2
         self.noisy_scale, self.noisy_depth_mm_per_m2 = noisy_scale, noisy_depth_mm_per_m2
         self.noise: OrderedDict[int, float] = OrderedDict()
@@ -68,13 +71,15 @@ class ImageReplies:
         """Whether the depth of the keyframes answered so far is noisy."""
         return bool(self.noise) and self._median() >= self.noisy_depth_mm_per_m2
 
-    @property
-    def depth_step(self) -> float:
-        """The inverse-depth step (mm/m²) of the next reply: `depth_step_mm_per_m2`, coarser
-        where `step_noise_ratio` x the median noise is."""
+    def depth_step(self, scale: float = 1.0) -> float:
+        """The inverse-depth step (mm/m²) of the next reply at `scale` of the processed size:
+        `depth_step_mm_per_m2`, coarser where `step_noise_ratio` x the median noise x `scale`
+        is. Resampling to half size averages four pixels, which halves the noise; at other
+        scales it averages fewer, so the step is finer than the noise asks (never coarser)."""
         step = self.depth_step_mm_per_m2
         if self.step_noise_ratio > 0 and self.noise:
-            step = max(step, min(MAX_NOISE_STEP, self.step_noise_ratio * self._median()))
+            noise_step = self.step_noise_ratio * self._median() * min(scale, 1.0)
+            step = max(step, min(MAX_NOISE_STEP, noise_step))
         return step
 
     def _median(self) -> float:
@@ -92,16 +97,17 @@ class ImageReplies:
         if self.noisy_scale < 1.0 and self.noisy and request.scale > self.noisy_scale:
             request = request.model_copy(update={"scale": self.noisy_scale})
         return image_reply(request, rgb, depth_m, intr, self.rgb_codec, self.jpeg_quality,
-                           self.depth_step)
+                           self.depth_step(request.scale), self.depth_codec)
 
 
 def image_reply(request: KeyframeImageRequest, rgb: np.ndarray, depth_m: np.ndarray,
                 intr: Intrinsics, rgb_codec: str = "jpeg", jpeg_quality: int = 90,
-                depth_step_mm_per_m2: float = 0.0) -> KeyframeImage:
+                depth_step_mm_per_m2: float = 0.0, depth_codec: str = "zstd-delta"
+                ) -> KeyframeImage:
     """The reply to `request` from a keyframe's RGB uint8 [H, W, 3] and depth float32 [H, W]
     (m) with camera `intr`: resized by ``request.scale``, depth as inverse depth in steps of
-    `depth_step_mm_per_m2` x z² mm, or at 0 in millimetres (`depth_coding`), only what it
-    wants."""
+    `depth_step_mm_per_m2` x z² mm, or at 0 in millimetres (`depth_coding`), compressed by
+    `depth_codec`, only what it wants."""
     if request.scale < 1.0:
         rgb, depth_m = resize_rgbd(rgb, depth_m, request.scale)
         intr = intr.scaled(request.scale)
@@ -110,7 +116,8 @@ def image_reply(request: KeyframeImageRequest, rgb: np.ndarray, depth_m: np.ndar
         depth_m if request.want_depth else None, depth_scale, depth_encoding,
         agent_id=request.agent_id, kf_id=request.kf_id, fx=intr.fx, fy=intr.fy, cx=intr.cx,
         cy=intr.cy, width=intr.width, height=intr.height, rgb_codec=rgb_codec,
-        jpeg_quality=jpeg_quality, rgb=rgb if request.want_rgb else None)
+        jpeg_quality=jpeg_quality, depth_codec=depth_codec,
+        rgb=rgb if request.want_rgb else None)
 
 
 def rescale_reply(image: KeyframeImage, request: KeyframeImageRequest) -> KeyframeImage:
@@ -122,4 +129,4 @@ def rescale_reply(image: KeyframeImage, request: KeyframeImageRequest) -> Keyfra
     intr = Intrinsics(image.fx, image.fy, image.cx, image.cy, image.width, image.height)
     step = 1000.0 / image.depth_scale if image.depth_encoding == "inverse" else 0.0
     return image_reply(request, image.rgb, image.depth_metres(), intr, image.rgb_codec,
-                       image.jpeg_quality, step)
+                       image.jpeg_quality, step, image.depth_codec)

@@ -109,6 +109,7 @@ class AgentNode:
                               decoder_full_codec=cfg.link.decoder_full_codec,
                               images=ImageReplies(
                                   jpeg_quality=cfg.link.jpeg_quality,
+                                  depth_codec=cfg.link.depth_codec,
                                   depth_step_mm_per_m2=cfg.link.depth_step_mm_per_m2,
                                   noisy_scale=cfg.link.noisy_image_scale,
                                   noisy_depth_mm_per_m2=cfg.link.noisy_depth_mm_per_m2,

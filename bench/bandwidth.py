@@ -47,7 +47,9 @@ Variants (the `link` section, docs/configuration.md):
 - step-fixed, noisy-half-step-fixed: the depth step fixed (``link.depth_step_noise_ratio`` 0)
   at full size and with noisy-half; step-noise1, step-noise3: that ratio at 1 and 3;
 - decoder-int8, decoder-f16: full decoder weights as int8 rows with one scale each, or as
-  float16 (``link.decoder_full_codec``).
+  float16 (``link.decoder_full_codec``);
+- depth-png: keyframe depth as 16-bit PNG instead of zstd-delta (``link.depth_codec``);
+  noisy-half-jpeg80: noisy-half with colour at JPEG quality 80.
 
 Per variant and agent: bytes per second of sensor time per message type (the server's
 counters in metrics.json), the joint se3 ATE of both global trajectories, the merge time, and
@@ -118,6 +120,8 @@ VARIANTS = {
     "step-noise3": ["link.depth_step_noise_ratio=3"],
     "decoder-int8": ["link.decoder_full_codec=int8"],
     "decoder-f16": ["link.decoder_full_codec=float16"],
+    "depth-png": ["link.depth_codec=png"],
+    "noisy-half-jpeg80": ["link.noisy_image_scale=0.5", "link.jpeg_quality=80"],
 }
 
 

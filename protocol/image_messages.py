@@ -61,11 +61,10 @@ class _Image:
         if isinstance(value, dict) and "codec" in value:
             if "width" not in info.data or "height" not in info.data:
                 raise ValueError("cannot check the image without a valid width and height")
-            declared = info.data.get("rgb_codec")
-            if self.kind == "rgb" and value["codec"] != declared:
-                raise ValueError(
-                    f"codec {value['codec']!r:.20} differs from rgb_codec {declared!r}"
-                )
+            field = f"{self.kind}_codec"
+            declared = info.data.get(field)
+            if value["codec"] != declared:
+                raise ValueError(f"codec {value['codec']!r:.20} differs from {field} {declared!r}")
             return image_from_wire(value, self.kind, info.data["width"], info.data["height"])
         if isinstance(value, dict):
             raise ValueError("expected an image map with keys codec/data")
@@ -75,10 +74,10 @@ class _Image:
 class KeyframeImage(Message):
     """A keyframe's colour and/or depth image with its intrinsics (reply to the request).
 
-    Colour is RGB in memory and PNG (lossless) or JPEG on the wire; depth is uint16, always
-    PNG, 0 = invalid, and either linear (value / depth_scale metres) or inverse
-    (depth_scale / value metres: steps that grow as depth², and planes whose values change
-    linearly across the image, which PNG's predictors store in few bytes). `from_metres` and
+    Colour is RGB in memory and PNG (lossless) or JPEG on the wire; depth is uint16, PNG or
+    zstd-delta (both lossless), 0 = invalid, and either linear (value / depth_scale metres)
+    or inverse (depth_scale / value metres: steps that grow as depth², and planes whose values
+    change linearly across the image, which a predictor stores in few bytes). `from_metres` and
     `depth_metres` convert to and from float32 metres.
     """
 
@@ -108,6 +107,8 @@ class KeyframeImage(Message):
     """How `rgb` is compressed on the wire."""
     jpeg_quality: int = Field(default=90, ge=1, le=100)
     """JPEG quality used when rgb_codec is jpeg."""
+    depth_codec: Literal["png", "zstd-delta"] = "zstd-delta"
+    """How `depth` is compressed on the wire (both lossless; zstd-delta a quarter smaller)."""
     rgb: Annotated[np.ndarray, _Image("rgb")] | None = None
     """Colour image, RGB (uint8 [H, W, 3]); None when not requested."""
     depth: Annotated[np.ndarray, _Image("depth")] | None = None
@@ -131,7 +132,7 @@ class KeyframeImage(Message):
         if self.rgb is not None:
             wire["rgb"] = image_to_wire(self.rgb, "rgb", self.rgb_codec, self.jpeg_quality)
         if self.depth is not None:
-            wire["depth"] = image_to_wire(self.depth, "depth")
+            wire["depth"] = image_to_wire(self.depth, "depth", self.depth_codec)
         return wire
 
     @classmethod

@@ -1,9 +1,11 @@
-"""Images on the wire: a msgpack map {"codec": "png" | "jpeg", "data": bin}.
+"""Images on the wire: a msgpack map {"codec": ..., "data": bin}.
 
-Colour is RGB uint8 [H, W, 3] in memory and converted to OpenCV's BGR only here, at the
-codec edge. Depth travels as a 16-bit grey PNG (lossless). Before OpenCV sees the bytes the
-header is parsed and its width, height, bit depth and channel count are checked against
-what the message declares, so a tiny file cannot decode into a huge image.
+Colour is RGB uint8 [H, W, 3] in memory, PNG or JPEG on the wire, and converted to OpenCV's
+BGR only here, at the codec edge. Depth is uint16, lossless: a 16-bit grey PNG or
+``zstd-delta`` (`cpslam.protocol.depth_delta`, a quarter smaller). Before OpenCV sees PNG or
+JPEG bytes the header is parsed and its width, height, bit depth and channel count are
+checked against what the message declares, so a tiny file cannot decode into a huge image;
+``zstd-delta`` data is decompressed to at most the declared size.
 """
 
 from __future__ import annotations
@@ -14,10 +16,12 @@ from typing import Any, Literal
 import cv2
 import numpy as np
 
+from cpslam.protocol.depth_delta import decode_depth_delta, encode_depth_delta
 from cpslam.protocol.errors import ProtocolError
 
 __all__ = [
     "CODECS",
+    "DEPTH_CODECS",
     "MAX_PIXELS",
     "WIRE_DEPTH_SCALE",
     "depth_coding",
@@ -27,7 +31,10 @@ __all__ = [
 ]
 
 CODECS: tuple[str, ...] = ("png", "jpeg")
-"""Image codecs allowed on the wire."""
+"""Colour image codecs allowed on the wire."""
+
+DEPTH_CODECS: tuple[str, ...] = ("png", "zstd-delta")
+"""Depth image codecs allowed on the wire (both lossless)."""
 
 MAX_PIXELS = 4096 * 4096
 """Largest image (width x height) accepted."""
@@ -66,11 +73,12 @@ def image_to_wire(
     image: np.ndarray, kind: ImageKind, codec: str = "png", jpeg_quality: int = 90
 ) -> dict[str, Any]:
     """Compress `image` (RGB uint8 [H, W, 3] or depth uint16 [H, W]) to its wire form."""
-    if codec not in CODECS:
-        raise ProtocolError(f"image codec must be one of {CODECS}, got {codec!r}")
+    allowed = DEPTH_CODECS if kind == "depth" else CODECS
+    if codec not in allowed:
+        raise ProtocolError(f"{kind} image codec must be one of {allowed}, got {codec!r}")
+    if codec == "zstd-delta":
+        return {"codec": codec, "data": encode_depth_delta(image)}
     if kind == "depth":
-        if codec != "png":
-            raise ProtocolError("depth images travel as 16-bit PNG only")
         ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, _PNG_LEVEL])
     else:
         bgr = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
@@ -92,18 +100,19 @@ def image_from_wire(obj: Any, kind: ImageKind, width: int, height: int) -> np.nd
     if not isinstance(obj, dict) or set(obj) != {"codec", "data"}:
         raise ProtocolError(f"{kind} image: expected a map with keys codec/data")
     codec, data = obj["codec"], obj["data"]
-    if codec not in CODECS:
-        raise ProtocolError(f"{kind} image: codec must be one of {CODECS}, got {codec!r:.40}")
+    allowed = DEPTH_CODECS if kind == "depth" else CODECS
+    if codec not in allowed:
+        raise ProtocolError(f"{kind} image: codec must be one of {allowed}, got {codec!r:.40}")
     if not isinstance(data, bytes):
         raise ProtocolError(f"{kind} image: data must be bin, got {type(data).__name__}")
     if width * height > MAX_PIXELS:
         raise ProtocolError(f"{kind} image: {width}x{height} exceeds {MAX_PIXELS} pixels")
+    if codec == "zstd-delta":
+        return decode_depth_delta(data, width, height)
     got_codec, got_w, got_h, bits, channels = read_header(data)
     want_bits, want_channels = (16, 1) if kind == "depth" else (8, 3)
     if got_codec != codec:
         raise ProtocolError(f"{kind} image: declared {codec} but the data is {got_codec}")
-    if kind == "depth" and codec != "png":
-        raise ProtocolError("depth image: must be PNG")
     if (got_w, got_h) != (width, height):
         raise ProtocolError(f"{kind} image: expected {width}x{height}, header says {got_w}x{got_h}")
     if (bits, channels) != (want_bits, want_channels):

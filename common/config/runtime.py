@@ -145,6 +145,8 @@ class LinkConfig(Section):
     """zstd level of the agent's messages of 1 kB or more; 0 sends them uncompressed."""
     jpeg_quality: int = Field(default=90, ge=1, le=100)
     """JPEG quality of the keyframe colour images sent to the server."""
+    depth_codec: Literal["png", "zstd-delta"] = "zstd-delta"
+    """Keyframe depth compression, both lossless: 16-bit PNG, or zstd-delta (a quarter smaller)."""
     depth_step_mm_per_m2: NonNegativeFloat = 0.5
     """Keyframe depth as inverse depth, in steps of this x depth² mm (0.1-50); 0: linear mm."""
     depth_step_noise_ratio: NonNegativeFloat = 2.0

@@ -429,7 +429,7 @@ def test_depth_steps_follow_the_measured_noise() -> None:
         replies = ImageReplies(depth_step_mm_per_m2=0.5)
         reply = replies.answer(full, rgb, noisy, intr)
         steps.append(1000.0 / reply.depth_scale)
-        assert steps[-1] == pytest.approx(replies.depth_step)
+        assert steps[-1] == pytest.approx(replies.depth_step())
         # what the server decodes is the depth to within half a step of z² (mm at 1 m)
         err_mm = np.abs(reply.depth_metres() - noisy) / noisy**2 * 1e3
         assert err_mm.max() <= 0.5 * steps[-1] * 1.01

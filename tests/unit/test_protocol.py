@@ -55,7 +55,7 @@ def test_round_trip_every_type(msg):
         data = decompress(data, P.max_bytes(msg.type_name()))
     wire = msgpack.unpackb(data, raw=False)
     assert list(wire)[:2] == ["type", "version"]
-    assert wire["version"] == P.PROTOCOL_VERSION == 7
+    assert wire["version"] == P.PROTOCOL_VERSION == 8
 
 
 def test_decoded_arrays_are_writable_native_copies():
@@ -122,10 +122,11 @@ def test_structural_errors(payload, needle):
 
 @pytest.mark.parametrize("zstd_level", [0, 3])
 @pytest.mark.parametrize(("msg_type", "old"), [("submap_delta", 1), ("keyframe", 3),
-                                              ("keyframe", 6)])
+                                              ("keyframe", 6), ("keyframe_image", 7)])
 def test_old_version_is_refused_by_name(zstd_level, msg_type, old):
     wire = _wire(sample(msg_type))
-    wire["version"] = old  # 1: float16 features before compression; 3, 6: float descriptors
+    # 1: float16 features before compression; 3, 6: float descriptors; 7: PNG depth only
+    wire["version"] = old
     payload = _pack(wire)
     if zstd_level:
         payload = compress(payload, zstd_level)
@@ -410,14 +411,14 @@ def test_depth_metres_conversion():
     ],
 )
 def test_image_decode_errors(mutate, needle):
-    wire = _wire(P.KeyframeImage(**_image_fields(rgb_codec="png")))
+    wire = _wire(P.KeyframeImage(**_image_fields(rgb_codec="png", depth_codec="png")))
     mutate(wire)
     with pytest.raises(P.ProtocolError, match=needle):
         P.decode(_pack(wire))
 
 
 def test_image_corrupt_body_is_a_protocol_error():
-    wire = _wire(P.KeyframeImage(**_image_fields(rgb_codec="png")))
+    wire = _wire(P.KeyframeImage(**_image_fields(rgb_codec="png", depth_codec="png")))
     data = bytearray(wire["depth"]["data"])
     data[40:-12] = bytes(len(data) - 52)  # keep the header, wipe the compressed stream
     wire["depth"]["data"] = bytes(data)
@@ -496,8 +497,9 @@ def test_inverse_depth_goes_in_steps_that_grow_as_depth_squared():
     assert (err <= 0.5 * step_m * 1.01 + 1e-6).all()
     assert err[zz < 0.5].max() <= 0.2e-3  # finer than millimetres up close
     assert err[zz > 3.0].max() > 0.5e-3  # coarser than millimetres far away
-    assert len(image_to_wire(inv.depth, "depth")["data"]) < len(
-        image_to_wire(mm.depth, "depth")["data"])
+    for codec in ("png", "zstd-delta"):
+        assert len(image_to_wire(inv.depth, "depth", codec)["data"]) < len(
+            image_to_wire(mm.depth, "depth", codec)["data"])
     # depths the uint16 range cannot hold are invalid, not clipped: nearer than scale/65535 m
     near = P.KeyframeImage.from_metres(np.full((120, 160), 0.005, np.float32), scale,
                                        encoding, **fields)
