@@ -280,6 +280,20 @@ def _bandwidth(report: dict) -> str:
             + _table(rows) + "\n\n" + _table(summary) + "\n" + note)
 
 
+def _depth_codec(report: dict) -> str:
+    rows = [("size", "depth step mm/m²", "PNG bytes", "zstd-delta bytes", "zstd-delta / PNG",
+             "encode ms PNG / zstd-delta", "decode ms PNG / zstd-delta")]
+    for r in report["rows"]:
+        png, delta = r["png"], r["zstd-delta"]
+        rows.append((f"{r['size'][0]} x {r['size'][1]}", r["step_mm_per_m2"] or "mm",
+                     png["bytes"], delta["bytes"], r["ratio"],
+                     f"{png['encode_ms']} / {delta['encode_ms']}",
+                     f"{png['decode_ms']} / {delta['decode_ms']}"))
+    return (f"Mean per image over {report['images']} depth frames of {report['data']} "
+            f"(frames {report['frames']}), resized and coded as keyframe replies are; both "
+            "codecs lossless (checked).\n\n" + _table(rows) + "\n")
+
+
 def _transport(report: dict) -> str:
     tcp, tls = report["links"]["tcp"], report["links"]["tls"]
     ratio = report["ratio_tls_over_tcp"]
@@ -303,7 +317,8 @@ RENDERERS = {"odometry": _odometry, "loop_edges": _loop_edges, "collab": _collab
              "rerun_overhead": _rerun_overhead, "persist": _persist, "flood": _flood,
              "transport": _transport, "bandwidth": _bandwidth, "scale": _scale,
              "faults": _faults, "gpu_check": _gpu_check,
-             "gpu_profile": _gpu_profile, "pose_graph_cost": _pose_graph_cost}
+             "gpu_profile": _gpu_profile, "pose_graph_cost": _pose_graph_cost,
+             "depth_codec": _depth_codec}
 
 
 if __name__ == "__main__":

@@ -280,3 +280,14 @@ def test_pose_graph_cost_bench_measures_a_graph_that_the_loops_correct() -> None
     text = _bench_module("render_results").RENDERERS["pose_graph_cost"](
         {"preset": "tiny", "loop_every": 10, "rows": [row]})
     assert "| 3 | 100 | 300 |" in text
+
+
+def test_depth_codec_bench_measures_and_renders() -> None:
+    bench, render = _bench_module("depth_codec"), _bench_module("render_results")
+    rng = np.random.default_rng(0)
+    wall = np.broadcast_to(np.linspace(1.0, 3.0, 64), (48, 64))
+    depth = (wall + rng.normal(0.0, 1e-3, wall.shape) * wall**2).astype(np.float32)
+    row = bench.measure([depth], 0.5, 1.3)
+    assert row["size"] == [32, 24] and row["png"]["bytes"] > 0 and row["zstd-delta"]["bytes"] > 0
+    text = render._depth_codec({"images": 1, "data": "wall", "frames": "0:1", "rows": [row]})
+    assert f"| 32 x 24 | 1.3 | {row['png']['bytes']} | {row['zstd-delta']['bytes']} |" in text

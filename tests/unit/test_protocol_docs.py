@@ -123,3 +123,18 @@ def test_every_key_expression_is_documented():
         rel = re.sub(r"/A$", "/<agent>", rel).replace("/image/7", "/image/<kf>")
         rel = rel.replace("alive/server/1", "alive/server/<state>")
         assert f"`{rel}`" in TEXT, f"key {rel!r} is not in {DOC.name}"
+
+
+def test_depth_delta_snippet_decodes_our_codec():
+    from cpslam.protocol.depth_delta import encode_depth_delta
+
+    block = next(b for b in _python_blocks() if "def decode_depth_delta" in b)
+    namespace: dict = {}
+    exec(compile(block, f"{DOC}:decode_depth_delta", "exec"), namespace)  # noqa: S102
+    rng = np.random.default_rng(0)
+    depth = np.cumsum(rng.integers(-3, 4, (30, 40)), axis=0) + 2000
+    depth[rng.random(depth.shape) < 0.1] = 0  # holes: escapes on both of their sides
+    depth[5, :] = 65535
+    depth = depth.astype(np.uint16)
+    got = namespace["decode_depth_delta"](encode_depth_delta(depth), 40, 30)
+    assert got.dtype == np.uint16 and np.array_equal(got, depth)
