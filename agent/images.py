@@ -41,8 +41,8 @@ class ImageReplies:
         rgb_codec, jpeg_quality: how the colour is compressed.
         depth_codec: how the depth is compressed (lossless: png or zstd-delta).
         depth_step_mm_per_m2: depth as inverse depth in steps of this x z² mm; 0: mm.
-        noisy_scale: the largest scale of a reply while the agent's depth is noisy (1: as
-            asked).
+        noisy_scale: the largest scale of a reply while the agent's depth is noisy and it
+            has merged with another agent (1: as asked).
         noisy_depth_mm_per_m2: depth is noisy when the median `depth_noise` of the last
             `NOISE_WINDOW` keyframes answered reaches this.
         step_noise_ratio: the inverse-depth step is at least this x that median noise (at
@@ -86,15 +86,19 @@ class ImageReplies:
         return float(np.median(list(self.noise.values())))
 
     def answer(self, request: KeyframeImageRequest, rgb: np.ndarray, depth_m: np.ndarray,
-               intr: Intrinsics) -> KeyframeImage:
-        """`image_reply` to `request`, at most `noisy_scale` of the size while depth is noisy,
-        in the `depth_step` that the noise measured so far (this keyframe's included) sets."""
+               intr: Intrinsics, merged: bool = True) -> KeyframeImage:
+        """`image_reply` to `request`, in the `depth_step` that the noise measured so far (this
+        keyframe's included) sets; at most `noisy_scale` of the size while depth is noisy and
+        the agent has `merged` with another. Before that its loop candidates with other
+        agents have no pose to start from: registering them takes matching features, which
+        half-size noisy depth does not give (9 of 45 failed on a noisy apartment)."""
         if self.noisy_scale < 1.0 or self.step_noise_ratio > 0:
             if request.kf_id not in self.noise:
                 self.noise[request.kf_id] = depth_noise(depth_m)
                 while len(self.noise) > NOISE_WINDOW:
                     self.noise.popitem(last=False)
-        if self.noisy_scale < 1.0 and self.noisy and request.scale > self.noisy_scale:
+        if (merged and self.noisy_scale < 1.0 and self.noisy
+                and request.scale > self.noisy_scale):
             request = request.model_copy(update={"scale": self.noisy_scale})
         return image_reply(request, rgb, depth_m, intr, self.rgb_codec, self.jpeg_quality,
                            self.depth_step(request.scale), self.depth_codec)

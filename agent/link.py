@@ -370,7 +370,8 @@ class AgentLink:
         except KeyError:
             rgb, depth, intr = kf.rgb_small, kf.depth_small, store.intrinsics_small
         self.stats["images"] += 1
-        return self.images.answer(request, rgb, depth, intr)
+        return self.images.answer(request, rgb, depth, intr,
+                                  merged=len(self.group_members) > 1)
 
     # ------------------------------------------------------------------------- internals
 

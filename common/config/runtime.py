@@ -152,7 +152,7 @@ class LinkConfig(Section):
     depth_step_noise_ratio: NonNegativeFloat = 2.0
     """The depth step is at least this x the measured noise sigma / depth², up to 1.5 (0: fixed)."""
     noisy_image_scale: float = Field(default=1.0, gt=0, le=1)
-    """Keyframe images go at most this fraction of the processed size while depth is noisy."""
+    """Largest keyframe image size (of the processed size) once merged while depth is noisy."""
     noisy_depth_mm_per_m2: PositiveFloat = 0.3
     """Depth is noisy when recent keyframes' median noise sigma / depth² reaches this (mm/m²)."""
     record: bool = False

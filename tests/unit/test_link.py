@@ -397,8 +397,11 @@ def test_noisy_depth_is_answered_at_the_noisy_scale_and_exact_depth_as_asked() -
     assert (exact.width, exact.height) == (160, 120) and not replies.noisy
     for kf in (2, 3):  # the median of the keyframes seen decides
         replies.answer(full.model_copy(update={"kf_id": kf}), rgb, noisy, intr)
+    alone = replies.answer(full.model_copy(update={"kf_id": 4}), rgb, noisy, intr,
+                           merged=False)  # no pose to start from yet: features need full size
+    assert replies.noisy and alone.width == 160
     half = replies.answer(full.model_copy(update={"kf_id": 4}), rgb, noisy, intr)
-    assert replies.noisy and (half.width, half.height, half.fx) == (80, 60, 80.0)
+    assert (half.width, half.height, half.fx) == (80, 60, 80.0)
     replies.answer(full, rgb, noisy, intr)  # keyframe 1 again: it keeps its first measure
     assert list(replies.noise) == [1, 2, 3, 4] and replies.noise[1] < 0.1
     smaller = replies.answer(full.model_copy(update={"scale": 0.4, "kf_id": 5}), rgb, noisy,
