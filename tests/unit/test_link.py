@@ -335,6 +335,25 @@ def test_image_request_answered_from_the_keyframe_store(warm) -> None:
     assert isinstance(missing, ErrorReply) and missing.code == "not_found"
 
 
+def test_noisy_images_go_smaller_only_once_the_agent_has_merged(warm) -> None:
+    from cpslam.agent.images import ImageReplies
+
+    link, _ = warm
+    kept = link.images, link.group_members
+    link.images = ImageReplies(noisy_scale=0.5)
+    link.images.noise.update({97: 2.0, 98: 2.0})  # keyframes answered before were noisy
+    try:
+        request = KeyframeImageRequest(agent_id="a0", kf_id=1)
+        alone = link.answer_image(request)
+        link.group_members = ["a0", "b0"]
+        merged = link.answer_image(request)
+    finally:
+        link.images, link.group_members = kept
+    full = link.odometry.keyframes.intrinsics
+    assert link.images is kept[0] and alone.width == full.width
+    assert merged.width == round(full.width / 2)
+
+
 def test_image_request_at_half_scale_gets_half_the_size_with_matching_intrinsics(warm) -> None:
     link, _ = warm
     full = link.answer_image(KeyframeImageRequest(agent_id="a0", kf_id=1))
