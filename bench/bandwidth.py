@@ -39,8 +39,8 @@ Variants (the `link` section, docs/configuration.md):
 - bits6, bits5, bits4: sub-map feature codes of that many bits (``link.feature_bits``);
   jpeg80: keyframe colour at JPEG quality 80; images-half-bits5, images-half-jpeg80-bits5:
   those together;
-- noisy-half: keyframe images at half the processed size when the agent's depth is noisy
-  (``link.noisy_image_scale`` 0.5);
+- noisy-half, noisy-full: keyframe images at half the processed size once merged when the
+  agent's depth is noisy (``link.noisy_image_scale`` 0.5, the default), or as asked (1);
 - depth-mm, depth0.5, depth1, depth1.5: keyframe depth in millimetres, or as inverse depth in
   steps of 0.5, 1 or 1.5 mm x depth² (``link.depth_step_mm_per_m2``); images-half-depth1-bits6:
   half-size images, inverse depth at 1 and 6-bit features together;
@@ -108,6 +108,7 @@ VARIANTS = {
     "images-half-jpeg80-bits5": ["loop.image_scale=0.5", "link.jpeg_quality=80",
                                  "link.feature_bits=5"],
     "noisy-half": ["link.noisy_image_scale=0.5"],
+    "noisy-full": ["link.noisy_image_scale=1"],
     "depth-mm": ["link.depth_step_mm_per_m2=0"],
     "depth0.5": ["link.depth_step_mm_per_m2=0.5"],
     "depth1": ["link.depth_step_mm_per_m2=1"],

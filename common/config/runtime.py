@@ -151,7 +151,7 @@ class LinkConfig(Section):
     """Keyframe depth as inverse depth, in steps of this x depth² mm (0.1-50); 0: linear mm."""
     depth_step_noise_ratio: NonNegativeFloat = 2.0
     """The depth step is at least this x the measured noise sigma / depth², up to 1.5 (0: fixed)."""
-    noisy_image_scale: float = Field(default=1.0, gt=0, le=1)
+    noisy_image_scale: float = Field(default=0.5, gt=0, le=1)
     """Largest keyframe image size (of the processed size) once merged while depth is noisy."""
     noisy_depth_mm_per_m2: PositiveFloat = 0.3
     """Depth is noisy when recent keyframes' median noise sigma / depth² reaches this (mm/m²)."""
