@@ -28,6 +28,7 @@ DEPTH_DELTA_LEVEL = 19
 320 x 240 image on one core (3 x PNG's time; once per keyframe sent)."""
 
 _ESCAPE = 255
+_BLOCK_COLUMNS = 256
 
 
 def encode_depth_delta(depth: np.ndarray, level: int = DEPTH_DELTA_LEVEL) -> bytes:
@@ -61,21 +62,28 @@ def decode_depth_delta(data: bytes, width: int, height: int) -> np.ndarray:
     if len(payload) != n + 2 * n_raw:
         raise ProtocolError(f"depth delta: {len(payload)} bytes, expected {n + 2 * n_raw} "
                             f"for {n} pixels with {n_raw} raw values")
-    raw = np.frombuffer(payload, "<u2", count=n_raw, offset=n)
-    code = codes.astype(np.int64)
-    delta = np.where(code & 1, -(code + 1) // 2, code // 2)
-    delta[escape] = 0
-    base = np.zeros((height, width), np.int64)
-    base[escape] = raw
-    # a pixel is the raw value of the last escape at or above it in its column (0 above the
-    # first row) plus the deltas below that escape down to it
-    running = np.cumsum(delta, axis=0)
-    rows = np.where(escape, np.arange(height)[:, None], -1)
-    last = np.maximum.accumulate(rows, axis=0)
-    cols = np.broadcast_to(np.arange(width), (height, width))
-    at = np.maximum(last, 0)
-    start = np.where(last >= 0, base[at, cols] - running[at, cols], 0)
-    value = start + running
-    if value.min(initial=0) < 0 or value.max(initial=0) > np.iinfo(np.uint16).max:
+    raw = np.zeros((height, width), np.uint16)
+    raw[escape] = np.frombuffer(payload, "<u2", count=n_raw, offset=n)
+    depth = np.empty((height, width), np.uint16)
+    for c0 in range(0, width, _BLOCK_COLUMNS):  # bounds the int32 temporaries
+        block = slice(c0, c0 + _BLOCK_COLUMNS)
+        depth[:, block] = _decode_columns(codes[:, block], escape[:, block], raw[:, block])
+    return depth
+
+
+def _decode_columns(codes: np.ndarray, escape: np.ndarray, raw: np.ndarray) -> np.ndarray:
+    """Depth [H, w] of a block of columns: a pixel is the raw value of the last escape at or
+    above it in its column (0 above the first row) plus the deltas below it down to the
+    pixel."""
+    code = codes.astype(np.int32)
+    running = (code >> 1) ^ -(code & 1)  # zig-zag decoded
+    running[escape] = 0
+    np.cumsum(running, axis=0, out=running)
+    start = np.zeros_like(running)
+    start[escape] = raw[escape].astype(np.int32) - running[escape]
+    last = np.where(escape, np.arange(len(code), dtype=np.int32)[:, None], 0).astype(np.int32)
+    np.maximum.accumulate(last, axis=0, out=last)
+    running += np.take_along_axis(start, last, axis=0)
+    if running.size and (running.min() < 0 or running.max() > np.iinfo(np.uint16).max):
         raise ProtocolError("depth delta: the deltas leave the uint16 range")
-    return value.astype(np.uint16)
+    return running.astype(np.uint16)

@@ -110,3 +110,21 @@ def test_a_message_checks_the_codec_it_declares() -> None:
         P.KeyframeImage.model_validate(wire)
     with pytest.raises(P.ProtocolError, match="uint16"):
         encode_depth_delta(np.zeros((6, 7), np.int32))
+
+
+def test_a_tiny_frame_of_a_huge_image_decodes_in_bounded_memory() -> None:
+    """A few hundred bytes may declare a large image: decoding it takes a few bytes per pixel
+    (the payload, masks, the uint16 result, column blocks), not int64 arrays of it."""
+    import tracemalloc
+
+    width, height = 4096, 1024
+    data = compress(bytes(width * height), 3)
+    assert len(data) < 1000
+    tracemalloc.start()
+    try:
+        depth = decode_depth_delta(data, width, height)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert depth.shape == (height, width) and not depth.any()
+    assert peak < 10 * width * height, peak / (width * height)
