@@ -95,6 +95,13 @@ class SubmapMirror:
                 send[known] = moved > self.threshold * np.abs(held).max(axis=1)
         return send, np.setdiff1d(self.ids, ids)
 
+    def knows(self, ids: np.ndarray) -> np.ndarray:
+        """Mask [N] of the points `ids` int64 [N] the server holds a copy of."""
+        if not len(self.ids) or not len(ids):
+            return np.zeros(len(ids), bool)
+        pos = np.minimum(np.searchsorted(self.ids, ids), len(self.ids) - 1)
+        return self.ids[pos] == ids
+
     def feature_only(self, ids: np.ndarray, send: np.ndarray, acked_seq: int) -> np.ndarray:
         """Mask [N] of the rows of `send` that may go as features alone: points whose full row
         travelled in a message the server has acknowledged (seq <= `acked_seq`), so it holds

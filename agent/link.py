@@ -93,6 +93,8 @@ class AgentLink:
         feature_threshold, feature_codec, feature_bits: which known points are resent, and
             how features travel (`SubmapMirror`).
         feature_rows: a known point the server acknowledged goes with its features alone.
+        held_every_deltas: points the server holds are resent with every this-many-th
+            sub-map delta (and the last); the others carry new and removed points only.
         decoder_delta: send decoder weights as an int8 delta against the last group decoder.
         decoder_full_codec: full decoder weights as "float16" or "int8" (`DecoderBase`).
     """
@@ -114,13 +116,15 @@ class AgentLink:
         feature_codec: str = "float16",
         feature_bits: int = 8,
         feature_rows: bool = False,
+        held_every_deltas: int = 1,
         decoder_delta: bool = False,
         decoder_full_codec: str = "float16",
     ) -> None:
-        if min(frames_every, round_every_mappings, submap_every_mappings) < 1:
-            raise ValueError(f"AgentLink: frames_every, round_every_mappings and "
-                             f"submap_every_mappings must be >= 1, got {frames_every}, "
-                             f"{round_every_mappings}, {submap_every_mappings}")
+        if min(frames_every, round_every_mappings, submap_every_mappings, held_every_deltas) < 1:
+            raise ValueError(f"AgentLink: frames_every, round_every_mappings, "
+                             f"submap_every_mappings and held_every_deltas must be >= 1, got "
+                             f"{frames_every}, {round_every_mappings}, {submap_every_mappings}, "
+                             f"{held_every_deltas}")
         self.agent_id = agent_id
         self.odometry = odometry
         self.describe = describe
@@ -150,6 +154,8 @@ class AgentLink:
                                    feature_codec, feature_bits)  # type: ignore[arg-type]
         self.submap_every_mappings = submap_every_mappings
         self.feature_rows = feature_rows
+        self.held_every_deltas = held_every_deltas
+        self._deltas = 0  # sub-map deltas built, the one that resends held points included
         self.decoder_delta = decoder_delta
         self.decoder_base = DecoderBase(full_codec=decoder_full_codec)
         self._submap_mappings = 0
@@ -190,7 +196,7 @@ class AgentLink:
     def finish(self) -> list[Message]:
         """End of the stream (mapping drained): a last sub-map delta when mapping changed the
         map since the previous one, then the frame poses not sent yet."""
-        delta = self._submap_delta()
+        delta = self._submap_delta(held=True)
         return ([delta] if delta is not None else []) + self.flush()
 
     def flush(self) -> list[Message]:
@@ -257,12 +263,17 @@ class AgentLink:
             stamp=kf.timestamp, world_epoch=self.epoch, T_world_cam=kf.T_world_cam,
             T_prev_kf_kf=T_prev, descriptor=descriptor, n_points=len(kf.point_ids)))
 
-    def _submap_delta(self, max_points: int | None = None) -> SubmapDelta | None:
+    def _submap_delta(self, max_points: int | None = None, held: bool | None = None
+                      ) -> SubmapDelta | None:
         """Own points that are new or moved enough since the server's copy (the first
-        `max_points` of them), and own points that disappeared (`submap_delta_fields`)."""
+        `max_points` of them), and own points that disappeared (`submap_delta_fields`);
+        points the server holds only with every `held_every_deltas`-th delta or when `held`."""
         self._submap_mappings = 0
+        if held is None:
+            held = self._deltas % self.held_every_deltas == 0
+        self._deltas += 1
         fields = submap_delta_fields(self.odometry.point_map, self.own, self.mirror, self._seq,
-                                     self.feature_rows, self.outbox.floor, max_points)
+                                     self.feature_rows, self.outbox.floor, max_points, held)
         if fields is None:
             return None
         return self._stamp(SubmapDelta(agent_id=self.agent_id, seq=0, **fields))

@@ -103,6 +103,7 @@ class AgentNode:
                               submap_every_mappings=cfg.link.submap_every_mappings,
                               feature_threshold=cfg.link.feature_threshold,
                               feature_rows=cfg.link.feature_rows,
+                              held_every_deltas=cfg.link.held_every_deltas,
                               feature_codec=cfg.link.feature_codec,
                               feature_bits=cfg.link.feature_bits,
                               decoder_delta=cfg.link.decoder_delta,

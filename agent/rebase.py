@@ -48,7 +48,7 @@ def restart_stream(link: AgentLink, incarnation: int, max_points: int = MAX_POIN
     whole state, see the module docstring); the caller publishes them."""
     _reset(link, incarnation)
     out: list[Message] = list(_keyframes(link))
-    while (delta := link._submap_delta(max_points)) is not None:
+    while (delta := link._submap_delta(max_points, held=True)) is not None:
         out.append(delta)
     if link.federation and link.odometry.n_frames:
         out.append(link._decoder_weights())

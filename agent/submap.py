@@ -23,19 +23,22 @@ __all__ = ["submap_delta_fields"]
 
 
 def submap_delta_fields(pm: NeuralPointMap, own: int, mirror: SubmapMirror, seq: int,
-                        feature_rows: bool, acked: int, max_points: int | None = None
-                        ) -> dict[str, Any] | None:
+                        feature_rows: bool, acked: int, max_points: int | None = None,
+                        held: bool = True) -> dict[str, Any] | None:
     """`SubmapDelta` fields (all but ``agent_id`` and ``seq``) of the points of agent key
     `own` that are new or moved enough since the server's copy (the first `max_points` of
     them) and of own points that disappeared; None when there is none. `mirror` records them
     as sent in the message `seq`. With `feature_rows`, a known point whose full row went in a
-    message the server acknowledged (seq <= `acked`) goes with its features alone."""
+    message the server acknowledged (seq <= `acked`) goes with its features alone. Without
+    `held`, points the mirror knows wait for a later delta (only new ones and removals go)."""
     rows = (pm.agent_id == own).nonzero(as_tuple=True)[0]
     ids = pm.point_id[rows].cpu().numpy()
     order = np.argsort(ids)
     ids, rows = ids[order], rows[torch.from_numpy(order).to(rows.device)]
     feats = pm.features.detach()[rows].cpu().numpy().astype(np.float32)
     send, removed = mirror.select(ids, feats)
+    if not held:
+        send &= ~mirror.knows(ids)
     if max_points is not None:
         send[np.nonzero(send)[0][max_points:]] = False
     if not send.any() and not len(removed):

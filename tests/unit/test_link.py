@@ -581,3 +581,23 @@ def test_decoder_weights_are_int8_deltas_against_the_loaded_group_decoder() -> N
     link.apply_update(_update(link, 1, np.eye(4), group="g2", members=("a0", "b1"), epoch=1))
     weights = [m for m in _run(link, 6, 11) if isinstance(m, DecoderWeights)][-1]
     assert weights.group_id == "g2" and weights.base_round is None and weights.tensors_f16
+
+
+def test_held_points_go_again_only_with_every_nth_delta_and_the_last() -> None:
+    """With a period longer than the run, points the server holds wait for the last delta
+    (`finish`): only new points may go before; with a period of 1 they go with each."""
+    deltas, lasts = {}, {}
+    for every in (1, 1000):
+        link = _link(held_every_deltas=every, feature_rows=True)
+        deltas[every] = [m for m in _run(link, 0, 12) if isinstance(m, SubmapDelta)]
+        lasts[every] = [m for m in link.finish() if isinstance(m, SubmapDelta)]
+    first = set(deltas[1000][0].point_ids.tolist())
+    assert first == set(deltas[1][0].point_ids.tolist())
+    # the held points moved: with a period of 1 they go again (whole: nothing is acked here)
+    assert any(first & set(d.point_ids.tolist()) for d in deltas[1][1:])
+    for delta in deltas[1000][1:]:
+        assert not delta.feature_ids.size and not first & set(delta.point_ids.tolist())
+    last = lasts[1000][0]
+    assert first <= {*last.point_ids.tolist(), *last.feature_ids.tolist()}
+    with pytest.raises(ValueError, match="held_every_deltas"):
+        _link(held_every_deltas=0)
