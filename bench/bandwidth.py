@@ -48,8 +48,8 @@ Variants (the `link` section, docs/configuration.md):
   at full size and with noisy-half; step-noise1, step-noise3: that ratio at 1 and 3;
 - decoder-int8, decoder-f16: full decoder weights as int8 rows with one scale each, or as
   float16 (``link.decoder_full_codec``);
-- held2: points the server holds resent with every second sub-map delta only
-  (``link.held_every_deltas`` 2);
+- held2, held1: points the server holds resent with every second sub-map delta only
+  (``link.held_every_deltas`` 2, the default), or with each (1);
 - depth-png: keyframe depth as 16-bit PNG instead of zstd-delta (``link.depth_codec``);
   noisy-half-jpeg80: noisy-half with colour at JPEG quality 80.
 
@@ -112,6 +112,7 @@ VARIANTS = {
     "noisy-half": ["link.noisy_image_scale=0.5"],
     "noisy-full": ["link.noisy_image_scale=1"],
     "held2": ["link.held_every_deltas=2"],
+    "held1": ["link.held_every_deltas=1"],
     "depth-mm": ["link.depth_step_mm_per_m2=0"],
     "depth0.5": ["link.depth_step_mm_per_m2=0.5"],
     "depth1": ["link.depth_step_mm_per_m2=1"],

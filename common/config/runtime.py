@@ -133,7 +133,7 @@ class LinkConfig(Section):
     """Resend a known point when a feature moved by this fraction of its largest (0: any)."""
     feature_rows: bool = True
     """Resend a point the server acknowledged as its features alone, without position or colour."""
-    held_every_deltas: PositiveInt = 1
+    held_every_deltas: PositiveInt = 2
     """Points the server holds go again only with every this-many-th sub-map delta (new: each)."""
     feature_codec: Literal["float16", "int8"] = "int8"
     """Sub-map features on the wire: float16, or int8 with one scale per point."""
