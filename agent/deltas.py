@@ -77,11 +77,7 @@ class SubmapMirror:
     def select(self, ids: np.ndarray, features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(mask [N] of the rows to send, ids the server holds that are gone) for the current
         points `ids` int64 [N] (sorted) with `features` float32 [N, F]. Read only."""
-        known = np.zeros(len(ids), bool)
-        pos = np.zeros(len(ids), np.int64)
-        if len(self.ids) and len(ids):
-            pos = np.minimum(np.searchsorted(self.ids, ids), len(self.ids) - 1)
-            known = self.ids[pos] == ids
+        pos, known = self._find(ids)
         send = ~known
         if known.any():
             held = self.features[pos[known]]
@@ -97,20 +93,23 @@ class SubmapMirror:
 
     def knows(self, ids: np.ndarray) -> np.ndarray:
         """Mask [N] of the points `ids` int64 [N] the server holds a copy of."""
+        return self._find(ids)[1]
+
+    def _find(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(row [N] in the copy, whether it is that point [N]) for the points `ids` int64 [N]."""
         if not len(self.ids) or not len(ids):
-            return np.zeros(len(ids), bool)
+            return np.zeros(len(ids), np.int64), np.zeros(len(ids), bool)
         pos = np.minimum(np.searchsorted(self.ids, ids), len(self.ids) - 1)
-        return self.ids[pos] == ids
+        return pos, self.ids[pos] == ids
 
     def feature_only(self, ids: np.ndarray, send: np.ndarray, acked_seq: int) -> np.ndarray:
         """Mask [N] of the rows of `send` that may go as features alone: points whose full row
         travelled in a message the server has acknowledged (seq <= `acked_seq`), so it holds
         them. A point's anchor, position and colour never change under its id."""
         out = np.zeros(len(ids), bool)
-        if len(self.ids) and send.any():
-            rows = np.nonzero(send)[0]
-            pos = np.minimum(np.searchsorted(self.ids, ids[rows]), len(self.ids) - 1)
-            out[rows] = (self.ids[pos] == ids[rows]) & (self.seqs[pos] <= acked_seq)
+        rows = np.nonzero(send)[0]
+        pos, hit = self._find(ids[rows])
+        out[rows[hit]] = self.seqs[pos[hit]] <= acked_seq
         return out
 
     def commit(
@@ -127,8 +126,7 @@ class SubmapMirror:
         held[send] = received
         old = np.nonzero(~send | (feature_only if feature_only is not None else False))[0]
         if len(old) and len(self.ids):
-            pos = np.minimum(np.searchsorted(self.ids, ids[old]), len(self.ids) - 1)
-            hit = self.ids[pos] == ids[old]
+            pos, hit = self._find(ids[old])
             keep[old[hit]] = True
             unsent = hit & ~send[old]
             held[old[unsent]] = self.features[pos[unsent]]
