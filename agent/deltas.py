@@ -36,7 +36,8 @@ def encode_features(features: np.ndarray, codec: FeatureCodec,
         f16 = np.asarray(features, np.float32).astype(np.float16)
         return {"features": f16}, f16.astype(np.float32)
     if codec == "int8":
-        q, scale = quantise_rows(np.asarray(features, np.float32), feature_levels(bits))
+        q, scale = quantise_rows(np.asarray(features, np.float32), feature_levels(bits),
+                                 scale_dtype=np.float16)
         return {"features_int8": q, "feature_scales": scale}, dequantise_rows(q, scale)
     raise ValueError(f"feature codec: expected 'float16' or 'int8', got {codec!r}")
 

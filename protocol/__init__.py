@@ -26,6 +26,7 @@ from cpslam.protocol.codec import (
 from cpslam.protocol.delivery import Refusal, UpdateAck
 from cpslam.protocol.errors import ProtocolError
 from cpslam.protocol.messages import (
+    XYZ_STEP_M,
     DecoderWeights,
     FramePoses,
     KeyframeImage,
@@ -58,6 +59,7 @@ __all__ = [
     "encoded_size",
     "max_bytes",
     "array_to_wire",
+    "XYZ_STEP_M",
     "array_from_wire",
     "keys",
     "KeyframeMsg",

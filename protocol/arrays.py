@@ -1,8 +1,15 @@
-"""Arrays on the wire: a msgpack map {"dtype": str, "shape": [int, ...], "data": bin}.
+"""Arrays on the wire: a msgpack map {"dtype": str, "shape": [int, ...], "data": bin} and,
+for elements wider than a byte, an optional "filter".
 
 `data` holds the C-order elements in little-endian byte order; `dtype` is one of `DTYPES`.
-Decoding checks the declared shape against the byte count *before* anything is allocated, so
-a hostile header cannot make us reserve memory it does not pay for in bytes.
+A filter rearranges those bytes, losslessly and at the same length, so that zstd finds more to
+compress: ``planes`` stores byte 0 of every element, then byte 1 of every element, and so on
+(sign, exponent and high digits of neighbouring values sit together); ``delta-planes`` does
+the same to the first differences of an integer array, wrapping (sorted ids become small
+steps). Our encoder writes ``delta-planes`` for 1-d integer arrays (id lists) and ``planes``
+for any other array of two or more multi-byte elements. Decoding checks the declared shape
+against the byte count *before* anything is allocated, so a hostile header cannot make us
+reserve memory it does not pay for.
 """
 
 from __future__ import annotations
@@ -18,6 +25,8 @@ from cpslam.protocol.errors import ProtocolError
 
 __all__ = [
     "DTYPES",
+    "FILTERS",
+    "FIXED_POINT_MAX",
     "MAX_DIM",
     "MAX_NDIM",
     "ArraySpec",
@@ -45,17 +54,46 @@ MAX_NDIM = 8
 MAX_DIM = 2**31 - 1
 """Largest single dimension an array may declare."""
 
+FILTERS: tuple[str, ...] = ("planes", "delta-planes")
+"""Byte rearrangements an array's data may carry (see the module docstring)."""
+
+FIXED_POINT_MAX = 2**22
+"""Most grid steps a fixed-point value (`ArraySpec.grid`) may have: float32 values up to this
+many steps round-trip exactly through the int32 counts."""
+
 _WIRE_KEYS = frozenset(("dtype", "shape", "data"))
+_FILTERED_KEYS = frozenset(("dtype", "shape", "data", "filter"))
 _RIGID_TOL = 1e-3  # poses are often optimised in float32, so orthonormality is loose
 
 
 def array_to_wire(array: np.ndarray) -> dict[str, Any]:
-    """Wire form of an array: {"dtype", "shape", "data"} with little-endian C-order bytes."""
+    """Wire form of an array: {"dtype", "shape", "data"} with little-endian C-order bytes, plus
+    "filter" (`FILTERS`) for elements wider than a byte: delta-planes for 1-d integer arrays,
+    planes for the rest."""
     name = array.dtype.name
     if name not in DTYPES:
         raise ProtocolError(f"array dtype {name!r} is not allowed on the wire (allowed: {DTYPES})")
-    little = array.astype(np.dtype(name).newbyteorder("<"), copy=False)
-    return {"dtype": name, "shape": list(array.shape), "data": little.tobytes(order="C")}
+    little = np.ascontiguousarray(array, dtype=np.dtype(name).newbyteorder("<"))
+    wire = {"dtype": name, "shape": list(array.shape)}
+    if little.dtype.itemsize == 1 or little.size < 2:
+        return {**wire, "data": little.tobytes()}
+    flat = little.reshape(-1)
+    if little.dtype.kind in "iu" and little.ndim == 1:
+        steps = flat.copy()
+        steps[1:] = flat[1:] - flat[:-1]  # wraps in the dtype, undone by a wrapping cumsum
+        return {**wire, "data": _to_planes(steps), "filter": "delta-planes"}
+    return {**wire, "data": _to_planes(flat), "filter": "planes"}
+
+
+def _to_planes(flat: np.ndarray) -> bytes:
+    """Byte k of every element, for k = 0 .. itemsize - 1, one plane after the other."""
+    return flat.view(np.uint8).reshape(-1, flat.dtype.itemsize).T.tobytes()
+
+
+def _from_planes(data: bytes, dtype: np.dtype) -> np.ndarray:
+    """The flat array whose byte planes `data` holds (the inverse of `_to_planes`)."""
+    planes = np.frombuffer(data, np.uint8).reshape(dtype.itemsize, -1)
+    return np.ascontiguousarray(planes.T).view(dtype).reshape(-1)
 
 
 def array_from_wire(obj: Any, dtype: str | None = None) -> np.ndarray:
@@ -65,8 +103,11 @@ def array_from_wire(obj: Any, dtype: str | None = None) -> np.ndarray:
     """
     if not isinstance(obj, dict):
         raise ProtocolError(f"array: expected a map with keys dtype/shape/data, got {_kind(obj)}")
-    if set(obj) != _WIRE_KEYS:
-        raise ProtocolError(f"array: expected keys ['data', 'dtype', 'shape'], got {sorted(obj)}")
+    if set(obj) != _WIRE_KEYS and set(obj) != _FILTERED_KEYS:
+        raise ProtocolError(
+            f"array: expected keys ['data', 'dtype', 'shape'] and optionally 'filter', got "
+            f"{sorted(map(str, obj))[:8]}"
+        )
     name, shape, data = obj["dtype"], obj["shape"], obj["data"]
     if not isinstance(name, str) or name not in DTYPES:
         raise ProtocolError(f"array: dtype must be one of {DTYPES}, got {name!r:.40}")
@@ -88,7 +129,20 @@ def array_from_wire(obj: Any, dtype: str | None = None) -> np.ndarray:
         )
     if name == "bool" and data.translate(None, b"\x00\x01"):
         raise ProtocolError("array: bool data must hold only bytes 0 and 1")
-    return np.frombuffer(data, dtype=wire_dtype).reshape(shape).astype(np.dtype(name))
+    filt = obj.get("filter")
+    if filt is None:
+        flat = np.frombuffer(data, dtype=wire_dtype)
+    elif filt not in FILTERS:
+        raise ProtocolError(f"array: filter must be one of {FILTERS}, got {filt!r:.40}")
+    elif wire_dtype.itemsize == 1:
+        raise ProtocolError(f"array: filter {filt} needs elements wider than a byte, not {name}")
+    elif filt == "delta-planes" and wire_dtype.kind not in "iu":
+        raise ProtocolError(f"array: filter delta-planes is for integer arrays, not {name}")
+    else:
+        flat = _from_planes(data, wire_dtype)
+        if filt == "delta-planes":
+            flat = np.cumsum(flat, dtype=wire_dtype)  # wraps as the encoder's differences did
+    return flat.reshape(shape).astype(np.dtype(name))
 
 
 def check_rigid(T: np.ndarray, what: str) -> None:
@@ -120,17 +174,21 @@ class ArraySpec:
             None allows any shape with up to `MAX_NDIM` dimensions.
         finite: reject NaN and infinities.
         rigid: every trailing [4, 4] block must be a rigid transform (implies finite).
+        grid: fixed point: a float field whose values travel as int32 multiples of `grid`
+            (|value| < `FIXED_POINT_MAX` grid steps); from Python they are rounded to the
+            grid, so a message holds what its receiver will decode.
     """
 
     dtype: str
     shape: tuple[int | str, ...] | None = None
     finite: bool = False
     rigid: bool = False
+    grid: float | None = None
 
     def __get_pydantic_core_schema__(self, source: Any, handler: Any) -> core_schema.CoreSchema:
         return core_schema.no_info_plain_validator_function(
             self.validate,
-            serialization=core_schema.plain_serializer_function_ser_schema(array_to_wire),
+            serialization=core_schema.plain_serializer_function_ser_schema(self.to_wire),
         )
 
     def describe(self) -> str:
@@ -138,14 +196,40 @@ class ArraySpec:
         dims = "any shape" if self.shape is None else "[" + ", ".join(map(str, self.shape)) + "]"
         return f"{self.dtype} {dims}"
 
+    def to_wire(self, array: np.ndarray) -> dict[str, Any]:
+        """Wire form of a field value (`array_to_wire`, of the grid counts for fixed point)."""
+        if self.grid is None:
+            return array_to_wire(array)
+        return array_to_wire(np.rint(np.asarray(array, np.float64) / self.grid).astype(np.int32))
+
     def validate(self, value: Any) -> np.ndarray:
         """Checked array from a wire dict or an array-like; raises ValueError on defects."""
         if isinstance(value, dict):
-            array = array_from_wire(value, self.dtype)
+            if self.grid is None:
+                array = array_from_wire(value, self.dtype)
+            else:
+                counts = array_from_wire(value, "int32").astype(np.float64)
+                if counts.size and np.abs(counts).max() > FIXED_POINT_MAX:
+                    raise ValueError(f"{self.describe()} in steps of {self.grid}: counts must be "
+                                     f"within +-{FIXED_POINT_MAX}")
+                array = (counts * self.grid).astype(self.dtype)
         else:
             array = self._coerce(value)
+            if self.grid is not None:
+                array = self._to_grid(array)
         self._check(array)
         return array
+
+    def _to_grid(self, array: np.ndarray) -> np.ndarray:
+        """`array` rounded to the grid; ValueError beyond the fixed-point range."""
+        with np.errstate(all="ignore"):
+            counts = np.rint(np.asarray(array, np.float64) / self.grid)
+        if not (np.abs(counts) <= FIXED_POINT_MAX).all():  # also catches NaN
+            raise ValueError(
+                f"{self.describe()} in steps of {self.grid}: values must be finite and within "
+                f"+-{FIXED_POINT_MAX * self.grid:.6g}"
+            )
+        return (counts * self.grid + 0.0).astype(self.dtype)  # + 0.0: no -0.0, as decoded
 
     def _coerce(self, value: Any) -> np.ndarray:
         try:

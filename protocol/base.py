@@ -26,7 +26,7 @@ __all__ = [
     "WireModel",
 ]
 
-PROTOCOL_VERSION = 8
+PROTOCOL_VERSION = 9
 """Version every message carries; a decoder rejects any other. 2: zstd-framed payloads,
 int8 sub-map features, decoder weights as deltas against a group round. 3: a group's decoder
 goes to each member on its own key (``server/agent/<a>/group_decoder``). 4: keyframe
@@ -34,7 +34,8 @@ descriptors travel as float16, decoder weights may travel as float16 (``tensors_
 image request names the fraction of the processed size it wants (``scale``); a sub-map delta
 sends held points' features alone (``feature_ids``). 6: a keyframe image's depth may be
 inverse depth (``depth_encoding``). 7: keyframe descriptors travel as int8 codes. 8: keyframe
-depth may travel as vertical deltas in zstd (``depth_codec``)."""
+depth may travel as vertical deltas in zstd (``depth_codec``). 9: arrays of multi-byte elements
+may carry a byte-plane filter (``filter``)."""
 
 Id = Annotated[str, AfterValidator(lambda v: check_id(v, "id"))]
 """Agent, group or session id: 1-64 chars of [A-Za-z0-9_-] (usable as a key chunk)."""

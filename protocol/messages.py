@@ -36,6 +36,7 @@ __all__ = [
     "FramePoses",
     "KeyframeImageRequest",
     "KeyframeImage",
+    "XYZ_STEP_M",
     "check_points",
     "descriptor_codes",
 ]
@@ -48,10 +49,14 @@ MAX_FEATURE_DIM = 1024
 
 Ids = Annotated[np.ndarray, ArraySpec("int64", ("N",))]
 KfIds = Annotated[np.ndarray, ArraySpec("int32", ("N",))]
-Xyz = Annotated[np.ndarray, ArraySpec("float32", ("N", 3), finite=True)]
+XYZ_STEP_M = 0.0005
+"""Map point positions travel as int32 counts of this many metres (fixed point, so each is
+off by at most a quarter millimetre, far below depth noise and point spacing)."""
+
+Xyz = Annotated[np.ndarray, ArraySpec("float32", ("N", 3), finite=True, grid=XYZ_STEP_M)]
 Features = Annotated[np.ndarray, ArraySpec("float16", ("N", "F"), finite=True)]
 Int8Features = Annotated[np.ndarray, ArraySpec("int8", ("N", "F"))]
-RowScales = Annotated[np.ndarray, ArraySpec("float32", ("N",), finite=True)]
+RowScales = Annotated[np.ndarray, ArraySpec("float16", ("N",), finite=True)]
 Colors = Annotated[np.ndarray, ArraySpec("uint8", ("N", 3))]
 RemovedIds = Annotated[np.ndarray, ArraySpec("int64", ("M",))]
 UpdatedIds = Annotated[np.ndarray, ArraySpec("int64", ("U",))]
@@ -193,13 +198,14 @@ class SubmapDelta(Message):
     anchor_kf_ids: KfIds
     """Keyframe each point is anchored to (int32 [N])."""
     xyz_local: Xyz
-    """Point positions in the anchor keyframe's camera frame (float32 [N, 3], m)."""
+    """Point positions in the anchor keyframe's camera frame (float32 [N, 3], m; on the wire
+    int32 counts of `XYZ_STEP_M`)."""
     features: Features | None = None
     """Learned point features (float16 [N + U, F], F <= 1024); None when sent as int8."""
     features_int8: Int8Features | None = None
     """Quantised features (int8 [N + U, F], |q| <= 127); None when sent as float16."""
     feature_scales: RowScales | None = None
-    """Scale of each row of features_int8 (float32 [N + U], >= 0): feature = q * scale."""
+    """Scale of each row of features_int8 (float16 [N + U], >= 0): feature = q * scale."""
     colors: Colors
     """Point colours, RGB (uint8 [N, 3])."""
     removed_ids: RemovedIds

@@ -34,10 +34,13 @@ ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
 _QMAX = 127
 
 
-def quantise_rows(x: np.ndarray, levels: int = _QMAX) -> tuple[np.ndarray, np.ndarray]:
-    """(q int8 like `x`, scale float32 [rows]) with ``x ~ q * scale`` row by row (axis 0) and
-    ``|q| <= levels`` (1-127): fewer levels leave codes that zstd packs into fewer bits, each
-    element then off by at most max|row| / (2 levels)."""
+def quantise_rows(
+    x: np.ndarray, levels: int = _QMAX, scale_dtype: type = np.float32
+) -> tuple[np.ndarray, np.ndarray]:
+    """(q int8 like `x`, scale [rows] of `scale_dtype`) with ``x ~ q * scale`` row by row
+    (axis 0) and ``|q| <= levels`` (1-127): fewer levels leave codes that zstd packs into fewer
+    bits, each element then off by at most max|row| / (2 levels). A float16 scale is rounded
+    up, so no code overflows, and capped at float16's largest (rows beyond it are clipped)."""
     if not 1 <= levels <= _QMAX:
         raise ValueError(f"quantise_rows: levels must be in 1..{_QMAX}, got {levels}")
     x = np.asarray(x, np.float32)
@@ -46,9 +49,20 @@ def quantise_rows(x: np.ndarray, levels: int = _QMAX) -> tuple[np.ndarray, np.nd
         raise ValueError("quantise_rows: values must be finite")
     peak = np.abs(rows).max(axis=1) if rows.shape[1] else np.zeros(rows.shape[0], np.float32)
     scale = (peak / levels).astype(np.float32)
-    safe = np.where(scale > 0, scale, 1.0)[:, None]
+    if np.dtype(scale_dtype) == np.float16:
+        scale = _float16_up(scale)
+    safe = np.where(scale > 0, scale, 1.0).astype(np.float32)[:, None]
     q = np.clip(np.rint(rows / safe), -levels, levels).astype(np.int8)
-    return q.reshape(x.shape), scale
+    return q.reshape(x.shape), scale.astype(scale_dtype)
+
+
+def _float16_up(scale: np.ndarray) -> np.ndarray:
+    """The float16 values nearest `scale` (float32, >= 0) from above, as float32 (capped)."""
+    top = np.finfo(np.float16).max
+    half = np.minimum(scale, top).astype(np.float16)
+    low = half.astype(np.float32) < np.minimum(scale, top)
+    half[low] = np.nextafter(half[low], np.float16(np.inf))
+    return half.astype(np.float32)
 
 
 def dequantise_rows(q: np.ndarray, scale: np.ndarray) -> np.ndarray:

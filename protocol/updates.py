@@ -57,7 +57,8 @@ class ForeignPoints(WireModel):
     anchor_kf_ids: KfIds
     """Source keyframe each point is anchored to (int32 [N])."""
     xyz_local: Xyz
-    """Positions in the anchor keyframe's camera frame (float32 [N, 3], m)."""
+    """Positions in the anchor keyframe's camera frame (float32 [N, 3], m; on the wire int32
+    counts of `XYZ_STEP_M`)."""
     features: Features
     """Point features (float16 [N, F])."""
     colors: Colors

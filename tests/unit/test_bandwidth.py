@@ -48,6 +48,21 @@ def test_int8_keeps_zero_rows_exact_and_refuses_non_finite():
         quantise_rows(np.array([[1.0, np.nan]]))
 
 
+def test_float16_scales_round_up_so_codes_stay_in_range():
+    x = (RNG.standard_normal((500, 32)) * RNG.uniform(1e-6, 100.0, (500, 1))).astype(np.float32)
+    x[0] = 0.0
+    x[1, 0] = 1e9  # beyond float16 scales: capped, the row clipped
+    q, scale = quantise_rows(x, 31, scale_dtype=np.float16)
+    assert scale.dtype == np.float16 and np.isfinite(scale).all() and scale[0] == 0
+    assert np.abs(q.astype(np.int32)).max() <= 31
+    back = dequantise_rows(q, scale)
+    err = np.abs(back - x).max(axis=1)[2:]
+    peak = np.abs(x).max(axis=1)[2:]
+    # half a step of the rounded-up scale (float16 relative spacing 2^-10, subnormals absolute)
+    assert (err <= (peak / 62) * (1 + 2**-10) + 2**-25).all()
+    assert scale[1] == np.finfo(np.float16).max and q[1, 0] == 31
+
+
 def test_zstd_round_trip_is_exact_and_shrinks_a_sub_map_delta():
     msg = sample("submap_delta", n_points=2000)
     plain = P.encode(msg, zstd_level=0)

@@ -55,7 +55,7 @@ def test_round_trip_every_type(msg):
         data = decompress(data, P.max_bytes(msg.type_name()))
     wire = msgpack.unpackb(data, raw=False)
     assert list(wire)[:2] == ["type", "version"]
-    assert wire["version"] == P.PROTOCOL_VERSION == 8
+    assert wire["version"] == P.PROTOCOL_VERSION == 9
 
 
 def test_decoded_arrays_are_writable_native_copies():
@@ -215,12 +215,85 @@ def test_validation_error_names_field_and_expectation():
 # --- arrays ----------------------------------------------------------------------------------
 
 
-def test_array_wire_layout_is_little_endian():
-    a = np.array([[1, 2, 3]], dtype=">u2")  # big-endian in memory
+def test_array_wire_layout_is_little_endian_byte_planes():
+    a = np.array([[1, 2, 0x0103]], dtype=">u2")  # big-endian in memory
     wire = P.array_to_wire(a)
-    assert wire == {"dtype": "uint16", "shape": [1, 3], "data": b"\x01\x00\x02\x00\x03\x00"}
+    # byte 0 of each element, then byte 1 of each
+    assert wire == {"dtype": "uint16", "shape": [1, 3], "data": b"\x01\x02\x03\x00\x00\x01",
+                    "filter": "planes"}
     back = P.array_from_wire(wire)
-    assert back.dtype == np.uint16 and back.dtype.isnative and back.tolist() == [[1, 2, 3]]
+    assert back.dtype == np.uint16 and back.dtype.isnative and back.tolist() == [[1, 2, 0x0103]]
+    plain = {"dtype": "uint16", "shape": [3], "data": b"\x01\x00\x02\x00\x03\x01"}
+    assert P.array_from_wire(plain).tolist() == [1, 2, 0x0103]  # no filter: plain little-endian
+
+
+def test_one_d_integers_travel_as_wrapping_differences():
+    ids = np.array([5, 7, 8, -2**63, 2**63 - 1], np.int64)  # steps that wrap around
+    wire = P.array_to_wire(ids)
+    assert wire["filter"] == "delta-planes"
+    steps = np.frombuffer(wire["data"], np.uint8).reshape(8, -1).T.copy().view("<i8").ravel()
+    assert steps[:3].tolist() == [5, 2, 1]
+    back = P.array_from_wire(wire)
+    assert back.dtype == np.int64 and back.tolist() == ids.tolist()
+    for dtype in ("uint16", "int32"):
+        a = np.array([3, 1, np.iinfo(dtype).max, 0, 2], dtype)
+        assert P.array_from_wire(P.array_to_wire(a)).tolist() == a.tolist()
+
+
+def test_filters_shrink_what_zstd_sees():
+    rng = np.random.default_rng(0)
+    ids = np.sort(rng.choice(100_000, 20_000, replace=False)).astype(np.int64)
+    xyz = rng.uniform(-3, 3, (20_000, 3)).astype(np.float32)
+    for a, ratio in ((ids, 0.5), (xyz, 0.97)):  # random floats: only sign and exponent repeat
+        wire = P.array_to_wire(a)
+        plain = a.astype(a.dtype.newbyteorder("<")).tobytes()
+        assert len(wire["data"]) == len(plain)
+        assert len(compress(wire["data"], 3)) < ratio * len(compress(plain, 3))
+
+
+@pytest.mark.parametrize(
+    "wire, needle",
+    [
+        ({"dtype": "int8", "shape": [2], "data": b"\x00\x01", "filter": "planes"},
+         "wider than a byte"),
+        ({"dtype": "float32", "shape": [2], "data": b"\x00" * 8, "filter": "delta-planes"},
+         "for integer arrays"),
+        ({"dtype": "int32", "shape": [2], "data": b"\x00" * 8, "filter": "zigzag"},
+         "filter must be one of"),
+        ({"dtype": "int32", "shape": [2], "data": b"\x00" * 7, "filter": "planes"},
+         "needs 8 bytes"),
+        ({"dtype": "int32", "shape": [2], "data": b"\x00" * 8, "filter": "planes", "x": 1},
+         "expected keys"),
+    ],
+)
+def test_array_filter_errors(wire, needle):
+    with pytest.raises(P.ProtocolError, match=needle):
+        P.array_from_wire(wire)
+
+
+def test_positions_travel_in_fixed_point():
+    fields = _fields(sample("submap_delta", n_points=4, feature_dim=2))
+    xyz = np.array([[0.00026, -0.00024, 1.2345678], [-0.0001, 2.0, -3.0], [0, 0, 0],
+                    [2000.0, -2000.0, 0.5]], np.float32)
+    msg = P.SubmapDelta(**{**fields, "xyz_local": xyz})
+    assert np.abs(msg.xyz_local - xyz).max() <= P.XYZ_STEP_M / 2 + 1e-6
+    assert msg.xyz_local[0, 0] == np.float32(P.XYZ_STEP_M) and msg.xyz_local[1, 0] == 0.0
+    assert not np.signbit(msg.xyz_local[1, 0])  # no -0.0: it would not survive the wire
+    raw = msgpack.unpackb(P.encode(msg, zstd_level=0), raw=False)["xyz_local"]
+    assert raw["dtype"] == "int32"
+    counts = np.frombuffer(raw["data"], np.uint8).reshape(4, -1).T.copy().view("<i4")
+    assert counts.reshape(4, 3)[0].tolist() == [1, 0, 2469]
+    back = P.decode(P.encode(msg))
+    assert back == msg and back.xyz_local.dtype == np.float32
+    with pytest.raises(ValidationError, match="within"):
+        P.SubmapDelta(**{**fields, "xyz_local": np.full((4, 3), 3000.0, np.float32)})
+    wire = msgpack.unpackb(P.encode(msg, zstd_level=0), raw=False)
+    wire["xyz_local"] = P.array_to_wire(np.full((4, 3), 2**30, np.int32))
+    with pytest.raises(P.ProtocolError, match="counts must be within"):
+        P.decode(msgpack.packb(wire, use_bin_type=True))
+    wire["xyz_local"] = P.array_to_wire(np.zeros((4, 3), np.float32))
+    with pytest.raises(P.ProtocolError, match="expected dtype int32"):
+        P.decode(msgpack.packb(wire, use_bin_type=True))
 
 
 @pytest.mark.parametrize("dtype", P.DTYPES)
