@@ -45,7 +45,9 @@ def keyframe(seq, kf, inc=1, agent="a", z=0.0, dim=8):
 
 def delta(seq, ids, anchor=0, inc=1, agent="a", f=F, x0=0.0):
     n = len(ids)
-    xyz = np.column_stack([x0 + np.arange(n) * 0.5, np.zeros(n), np.ones(n)]).astype(np.float32)
+    # spread along x, within the fixed-point range of positions (+-2 km)
+    x = x0 + np.arange(n) % 2000 * 0.5
+    xyz = np.column_stack([x, np.zeros(n), np.ones(n)]).astype(np.float32)
     return SubmapDelta(
         agent_id=agent,
         seq=seq,
