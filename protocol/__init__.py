@@ -13,7 +13,7 @@ docs/protocol.md describes the bytes on the wire for readers without this packag
 """
 
 from cpslam.protocol import keys
-from cpslam.protocol.arrays import DTYPES, ArraySpec, array_from_wire, array_to_wire
+from cpslam.protocol.arrays import DTYPES, FILTERS, ArraySpec, array_from_wire, array_to_wire
 from cpslam.protocol.base import PROTOCOL_VERSION, Message, WireModel
 from cpslam.protocol.codec import (
     MAX_MESSAGE_BYTES,
@@ -59,6 +59,7 @@ __all__ = [
     "encoded_size",
     "max_bytes",
     "array_to_wire",
+    "FILTERS",
     "XYZ_STEP_M",
     "array_from_wire",
     "keys",

@@ -33,14 +33,16 @@ scalars = (
     | st.floats(allow_nan=True, allow_infinity=True)
     | st.text(max_size=12)
     | st.binary(max_size=40)
-    | st.sampled_from(["float32", "uint8", "png", "jpeg", "keyframe", "ack", "dtype", "shape"])
+    | st.sampled_from(["float32", "uint8", "png", "jpeg", "keyframe", "ack", "dtype", "shape",
+                       "planes", "delta-planes"])
 )
 values = st.recursive(
     scalars,
     lambda inner: (
         st.lists(inner, max_size=5)
         | st.dictionaries(
-            st.text(max_size=8) | st.sampled_from(["dtype", "shape", "data"]), inner, max_size=5
+            st.text(max_size=8) | st.sampled_from(["dtype", "shape", "data", "filter"]), inner,
+            max_size=5,
         )
     ),
     max_leaves=10,
@@ -99,12 +101,14 @@ def test_field_mutations(index, data):
         del wire[key]
     elif action == "add":
         wire[data.draw(st.text(max_size=10))] = data.draw(values)
-    else:  # plausible-looking but hostile array header
+    else:  # plausible-looking but hostile array header, with or without a byte filter
         wire[key] = {
             "dtype": data.draw(st.sampled_from([*P.DTYPES, "complex128", "S3"])),
             "shape": data.draw(st.lists(st.integers(min_value=-2, max_value=2**40), max_size=10)),
             "data": data.draw(st.binary(max_size=64)),
         }
+        if data.draw(st.booleans()):
+            wire[key]["filter"] = data.draw(st.sampled_from([*P.FILTERS, "", "rle"]) | scalars)
     _decode_or_error(msgpack.packb(wire, use_bin_type=True))
 
 
