@@ -291,3 +291,37 @@ def test_depth_codec_bench_measures_and_renders() -> None:
     assert row["size"] == [32, 24] and row["png"]["bytes"] > 0 and row["zstd-delta"]["bytes"] > 0
     text = render._depth_codec({"images": 1, "data": "wall", "frames": "0:1", "rows": [row]})
     assert f"| 32 x 24 | 1.3 | {row['png']['bytes']} | {row['zstd-delta']['bytes']} |" in text
+
+
+def test_wire_fields_splits_a_recording_by_topic_and_field(tmp_path: Path,
+                                                           capsys: pytest.CaptureFixture[str]
+                                                           ) -> None:
+    from cpslam import protocol
+    from cpslam.agent.deltas import encode_features
+    from cpslam.agent.recording import WireRecorder
+    from cpslam.protocol.samples import sample
+
+    base = sample("submap_delta", n_points=500, feature_dim=16)
+    fields, _ = encode_features(base.feature_values(), "int8")
+    msg = base.model_copy(update={"features": None, **fields})
+    keyframe = sample("keyframe", descriptor_dim=256)
+    rec = WireRecorder(tmp_path / "wire.rec", "a", "s", 1)
+    for i in range(2):
+        rec.message(float(i), "submap", protocol.encode(msg))
+    rec.message(2.0, "keyframe", protocol.encode(keyframe))
+    rec.close()
+    bench = _bench_module("wire_fields")
+    topics = bench.field_bytes([tmp_path / "wire.rec"])
+    assert sorted(topics) == ["keyframe", "submap"]
+    submap = topics["submap"]
+    assert submap["messages"] == 2 and submap["wire"] == 2 * len(protocol.encode(msg))
+    assert submap["fields"]["features_int8"]["raw"] == 2 * 500 * 16
+    assert submap["fields"]["feature_scales"]["raw"] == 2 * 500 * 2  # float16
+    assert submap["fields"]["xyz_local"]["raw"] == 2 * 500 * 3 * 4  # int32 counts
+    for f in submap["fields"].values():
+        assert f["zstd"] <= f["raw"]
+    # sorted ids with their filter compress far below their 8 bytes each
+    assert submap["fields"]["point_ids"]["zstd"] < 0.5 * submap["fields"]["point_ids"]["raw"]
+    bench.print_breakdown(topics)
+    out = capsys.readouterr().out
+    assert "submap: 2 messages" in out and "features_int8" in out
