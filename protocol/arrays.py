@@ -175,7 +175,7 @@ class ArraySpec:
         finite: reject NaN and infinities.
         rigid: every trailing [4, 4] block must be a rigid transform (implies finite).
         grid: fixed point: a float field whose values travel as int32 multiples of `grid`
-            (|value| < `FIXED_POINT_MAX` grid steps); from Python they are rounded to the
+            (at most `FIXED_POINT_MAX` grid steps); from Python they are rounded to the
             grid, so a message holds what its receiver will decode.
     """
 
