@@ -177,6 +177,8 @@ class ArraySpec:
         grid: fixed point: a float field whose values travel as int32 multiples of `grid`
             (at most `FIXED_POINT_MAX` grid steps); from Python they are rounded to the
             grid, so a message holds what its receiver will decode.
+        wire_dtype: a narrower float type the values travel as (e.g. float32 for a float64
+            field); from Python they are rounded through it, as with `grid`.
     """
 
     dtype: str
@@ -184,6 +186,7 @@ class ArraySpec:
     finite: bool = False
     rigid: bool = False
     grid: float | None = None
+    wire_dtype: str | None = None
 
     def __get_pydantic_core_schema__(self, source: Any, handler: Any) -> core_schema.CoreSchema:
         return core_schema.no_info_plain_validator_function(
@@ -198,14 +201,19 @@ class ArraySpec:
 
     def to_wire(self, array: np.ndarray) -> dict[str, Any]:
         """Wire form of a field value (`array_to_wire`, of the grid counts for fixed point)."""
-        if self.grid is None:
-            return array_to_wire(array)
-        return array_to_wire(np.rint(np.asarray(array, np.float64) / self.grid).astype(np.int32))
+        if self.grid is not None:
+            return array_to_wire(
+                np.rint(np.asarray(array, np.float64) / self.grid).astype(np.int32))
+        if self.wire_dtype is not None:
+            return array_to_wire(np.asarray(array).astype(self.wire_dtype))
+        return array_to_wire(array)
 
     def validate(self, value: Any) -> np.ndarray:
         """Checked array from a wire dict or an array-like; raises ValueError on defects."""
         if isinstance(value, dict):
-            if self.grid is None:
+            if self.wire_dtype is not None:
+                array = array_from_wire(value, self.wire_dtype).astype(self.dtype)
+            elif self.grid is None:
                 array = array_from_wire(value, self.dtype)
             else:
                 counts = array_from_wire(value, "int32").astype(np.float64)
@@ -217,6 +225,9 @@ class ArraySpec:
             array = self._coerce(value)
             if self.grid is not None:
                 array = self._to_grid(array)
+            elif self.wire_dtype is not None:
+                with np.errstate(over="ignore"):  # beyond the wire type: inf, refused if finite
+                    array = array.astype(self.wire_dtype).astype(self.dtype)
         self._check(array)
         return array
 

@@ -36,7 +36,7 @@ sends held points' features alone (``feature_ids``). 6: a keyframe image's depth
 inverse depth (``depth_encoding``). 7: keyframe descriptors travel as int8 codes. 8: keyframe
 depth may travel as vertical deltas in zstd (``depth_codec``). 9: arrays of multi-byte elements
 may carry a byte-plane filter (``filter``); map point positions travel in fixed point (int32
-counts of 0.5 mm), sub-map feature scales as float16."""
+counts of 0.5 mm), sub-map feature scales as float16, frame poses as float32."""
 
 Id = Annotated[str, AfterValidator(lambda v: check_id(v, "id"))]
 """Agent, group or session id: 1-64 chars of [A-Za-z0-9_-] (usable as a key chunk)."""

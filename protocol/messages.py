@@ -21,7 +21,6 @@ from cpslam.protocol.base import (
     KfId,
     Message,
     Pose,
-    Poses,
     Scales,
     Seq,
     Tensors,
@@ -357,8 +356,11 @@ class FramePoses(Message):
     """Frame timestamps (float64 [N], s)."""
     kf_ids: KfIds
     """Keyframe each frame is expressed against (int32 [N], >= 0)."""
-    T_kf_frame: Poses
-    """Frame camera pose in its keyframe's camera frame (float64 [N, 4, 4], m)."""
+    T_kf_frame: Annotated[
+        np.ndarray, ArraySpec("float64", ("N", 4, 4), rigid=True, wire_dtype="float32")
+    ]
+    """Frame camera pose in its keyframe's camera frame (float64 [N, 4, 4], m; float32 on the
+    wire: a relative pose needs no more)."""
 
     @model_validator(mode="after")
     def _check(self) -> FramePoses:

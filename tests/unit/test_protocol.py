@@ -271,6 +271,26 @@ def test_array_filter_errors(wire, needle):
         P.array_from_wire(wire)
 
 
+def test_frame_poses_travel_as_float32():
+    msg = sample("frame_poses", n_frames=5)
+    assert msg.T_kf_frame.dtype == np.float64
+    # what the message holds is already rounded through float32, so it round-trips exactly
+    assert np.array_equal(msg.T_kf_frame, msg.T_kf_frame.astype(np.float32).astype(np.float64))
+    raw = msgpack.unpackb(P.encode(msg, zstd_level=0), raw=False)["T_kf_frame"]
+    assert raw["dtype"] == "float32" and raw["shape"] == [5, 4, 4]
+    back = P.decode(P.encode(msg))
+    assert back == msg and back.T_kf_frame.dtype == np.float64
+    fields = _fields(msg)
+    huge = fields["T_kf_frame"].copy()
+    huge[0, 0, 3] = 1e39  # finite in float64, not in float32
+    with pytest.raises(ValidationError, match="finite"):
+        P.FramePoses(**{**fields, "T_kf_frame": huge})
+    wire = msgpack.unpackb(P.encode(msg, zstd_level=0), raw=False)
+    wire["T_kf_frame"] = P.array_to_wire(msg.T_kf_frame)  # float64 on the wire: refused
+    with pytest.raises(P.ProtocolError, match="expected dtype float32"):
+        P.decode(msgpack.packb(wire, use_bin_type=True))
+
+
 def test_positions_travel_in_fixed_point():
     fields = _fields(sample("submap_delta", n_points=4, feature_dim=2))
     xyz = np.array([[0.00026, -0.00024, 1.2345678], [-0.0001, 2.0, -3.0], [0, 0, 0],
