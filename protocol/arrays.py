@@ -200,7 +200,8 @@ class ArraySpec:
         return f"{self.dtype} {dims}"
 
     def to_wire(self, array: np.ndarray) -> dict[str, Any]:
-        """Wire form of a field value (`array_to_wire`, of the grid counts for fixed point)."""
+        """Wire form of a field value (`array_to_wire` of it, of its grid counts for fixed
+        point, or of it in the wire dtype)."""
         if self.grid is not None:
             return array_to_wire(
                 np.rint(np.asarray(array, np.float64) / self.grid).astype(np.int32))
@@ -211,28 +212,32 @@ class ArraySpec:
     def validate(self, value: Any) -> np.ndarray:
         """Checked array from a wire dict or an array-like; raises ValueError on defects."""
         if isinstance(value, dict):
-            if self.wire_dtype is not None:
-                array = array_from_wire(value, self.wire_dtype).astype(self.dtype)
-            elif self.grid is None:
-                array = array_from_wire(value, self.dtype)
-            else:
-                counts = array_from_wire(value, "int32").astype(np.float64)
-                if counts.size and np.abs(counts).max() > FIXED_POINT_MAX:
-                    raise ValueError(f"{self.describe()} in steps of {self.grid}: counts must be "
-                                     f"within +-{FIXED_POINT_MAX}")
-                array = (counts * self.grid).astype(self.dtype)
+            array = self._from_wire(value)
         else:
-            array = self._coerce(value)
-            if self.grid is not None:
-                array = self._to_grid(array)
-            elif self.wire_dtype is not None:
-                with np.errstate(over="ignore"):  # beyond the wire type: inf, refused if finite
-                    array = array.astype(self.wire_dtype).astype(self.dtype)
+            array = self._narrow(self._coerce(value))
         self._check(array)
         return array
 
-    def _to_grid(self, array: np.ndarray) -> np.ndarray:
-        """`array` rounded to the grid; ValueError beyond the fixed-point range."""
+    def _from_wire(self, value: dict) -> np.ndarray:
+        """The field's array from its wire form (the grid counts or the wire dtype's values)."""
+        if self.grid is not None:
+            counts = array_from_wire(value, "int32").astype(np.float64)
+            if counts.size and np.abs(counts).max() > FIXED_POINT_MAX:
+                raise ValueError(f"{self.describe()} in steps of {self.grid}: counts must be "
+                                 f"within +-{FIXED_POINT_MAX}")
+            return (counts * self.grid).astype(self.dtype)
+        if self.wire_dtype is not None:
+            return array_from_wire(value, self.wire_dtype).astype(self.dtype)
+        return array_from_wire(value, self.dtype)
+
+    def _narrow(self, array: np.ndarray) -> np.ndarray:
+        """A Python-side array rounded as the wire will carry it (grid or wire dtype); ValueError
+        beyond the fixed-point range."""
+        if self.wire_dtype is not None:
+            with np.errstate(over="ignore"):  # beyond the wire type: inf, refused if finite
+                return array.astype(self.wire_dtype).astype(self.dtype)
+        if self.grid is None:
+            return array
         with np.errstate(all="ignore"):
             counts = np.rint(np.asarray(array, np.float64) / self.grid)
         if not (np.abs(counts) <= FIXED_POINT_MAX).all():  # also catches NaN
