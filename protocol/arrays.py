@@ -203,8 +203,7 @@ class ArraySpec:
         """Wire form of a field value (`array_to_wire` of it, of its grid counts for fixed
         point, or of it in the wire dtype)."""
         if self.grid is not None:
-            return array_to_wire(
-                np.rint(np.asarray(array, np.float64) / self.grid).astype(np.int32))
+            return array_to_wire(self._counts(array).astype(np.int32))
         if self.wire_dtype is not None:
             return array_to_wire(np.asarray(array).astype(self.wire_dtype))
         return array_to_wire(array)
@@ -239,13 +238,17 @@ class ArraySpec:
         if self.grid is None:
             return array
         with np.errstate(all="ignore"):
-            counts = np.rint(np.asarray(array, np.float64) / self.grid)
+            counts = self._counts(array)
         if not (np.abs(counts) <= FIXED_POINT_MAX).all():  # also catches NaN
             raise ValueError(
                 f"{self.describe()} in steps of {self.grid}: values must be finite and within "
                 f"+-{FIXED_POINT_MAX * self.grid:.6g}"
             )
         return (counts * self.grid + 0.0).astype(self.dtype)  # + 0.0: no -0.0, as decoded
+
+    def _counts(self, array: np.ndarray) -> np.ndarray:
+        """The nearest grid counts of `array` (float64, as many as its values)."""
+        return np.rint(np.asarray(array, np.float64) / self.grid)
 
     def _coerce(self, value: Any) -> np.ndarray:
         try:

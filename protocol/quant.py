@@ -58,9 +58,9 @@ def quantise_rows(
 
 def _float16_up(scale: np.ndarray) -> np.ndarray:
     """The float16 values nearest `scale` (float32, >= 0) from above, as float32 (capped)."""
-    top = np.finfo(np.float16).max
-    half = np.minimum(scale, top).astype(np.float16)
-    low = half.astype(np.float32) < np.minimum(scale, top)
+    capped = np.minimum(scale, np.finfo(np.float16).max)
+    half = capped.astype(np.float16)
+    low = half.astype(np.float32) < capped
     half[low] = np.nextafter(half[low], np.float16(np.inf))
     return half.astype(np.float32)
 
