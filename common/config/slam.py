@@ -153,6 +153,10 @@ class TrackingConfig(Section):
     """lm: weight of luminance and depth residuals against the latest keyframe (0 = off)."""
     reference_pixels: PositiveInt = 2000
     """lm: pixels of the frame compared with the latest keyframe."""
+    n_near: PositiveInt | None = None
+    """Samples per tracking ray around the measured depth (null: field.n_near)."""
+    n_uniform: NonNegativeInt | None = None
+    """Uniform samples per tracking ray (null: field.n_uniform)."""
     outlier_err_lo: NonNegativeFloat = 0.1
     """Pixels with depth error below this multiple of the median error are masked."""
     outlier_err_hi: PositiveFloat = 10.0

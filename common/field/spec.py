@@ -60,10 +60,13 @@ class FieldSpec:
             leaky_slope=self.leaky_slope,
         )
 
-    def sampler(self, perturb: bool = True) -> RaySampler:
-        """The paper's ray sampler with these sample counts and depth bands."""
+    def sampler(self, perturb: bool = True, n_near: int | None = None,
+                n_uniform: int | None = None) -> RaySampler:
+        """The paper's ray sampler with these depth bands and sample counts (n_near,
+        n_uniform: other counts than the spec's, e.g. the tracker's)."""
         return RaySampler(
-            n_near=self.n_near, n_uniform=self.n_uniform, min_depth=self.no_depth_near,
+            n_near=self.n_near if n_near is None else n_near,
+            n_uniform=self.n_uniform if n_uniform is None else n_uniform, min_depth=self.no_depth_near,
             perturb=perturb, near_lo=self.near_lo, near_hi=self.near_hi, far_hi=self.far_hi,
         )
 

@@ -115,6 +115,8 @@ class Tracker:
         reference_weight, reference_pixels: "lm" only: weight of the residuals against a
             reference view (`track`'s `reference`, see `cpslam.common.field.image_terms`)
             and how many of the frame's pixels enter them (0 = off).
+        n_near, n_uniform: samples per ray around the observed depth and uniform ones
+            (None: the spec's, as mapping uses).
     """
 
     def __init__(
@@ -138,6 +140,8 @@ class Tracker:
         prior_sigma_r: float,
         reference_weight: float,
         reference_pixels: int,
+        n_near: int | None = None,
+        n_uniform: int | None = None,
         reuse_neighbours: float = 0.01,
     ) -> None:
         if iters < 1 or n_pixels < 1 or lr <= 0:
@@ -162,7 +166,7 @@ class Tracker:
         self.pixel_sampling = pixel_sampling
         self.intrinsics = intrinsics
         self.spec = spec
-        self.sampler = spec.sampler()
+        self.sampler = spec.sampler(n_near=n_near, n_uniform=n_uniform)
         self.iters = iters
         self.n_pixels = n_pixels
         self.lr = lr
