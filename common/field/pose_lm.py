@@ -24,7 +24,12 @@ its farthest sample by more than `reuse_neighbours`. The mask and scales are re-
 after each of the first three accepted steps and after a new search, then kept: re-weighting
 at every step can cycle between two poses a fraction of a millimetre apart. Converged when a
 step moves less than `tol_t` metres and `tol_r` radians (accepted or not) or an accepted one
-lowers the cost by less than a relative 1e-5.
+lowers the cost by less than a relative 1e-5. With `reuse_jacobian`, once the mask and scales
+are kept, an accepted step keeps the Jacobians of the last linearisation point and only
+recomputes the residuals, their robust weights and so H and g (a chord step): the pose then
+moves by a fraction of a millimetre per step, over which the Jacobians hardly change, and
+the candidates are rendered without the graph the Jacobians would need. The cost that
+accepts or rejects a step is exact either way.
 
 The solution's information matrix (H at the last linearisation point, 6 x 6, translation
 first, in units of the normalised residuals) says how well each direction is constrained.
@@ -74,6 +79,7 @@ class LMSettings:
     depth_floor: float = 0.002
     color_floor: float = 0.01
     reference_weight: float = 0.0
+    reuse_jacobian: bool = False
 
 
 @dataclass
@@ -122,11 +128,12 @@ def solve_pose_lm(
         return empty
     lam, costs, iters, accepted = _LAMBDA_START, [], 0, 0
     H = g = None
+    jacobians: list[torch.Tensor] | None = None  # of the last linearisation point, when kept
     cost_cur = math.inf
     while iters < settings.iters:
         if H is None:  # linearise at the current pose
             xi = se3_log(T_prior_inv @ T)
-            H, g = problem.normal_equations(state, scales)
+            H, g, jacobians = problem.normal_equations(state, scales, jacobians)
             H, g = H + np.diag(prior), g + prior * xi
             cost_cur = problem.cost(state, scales) + 0.5 * float(prior @ (xi * xi))
             costs.append(cost_cur / scales.kept)
@@ -136,7 +143,9 @@ def solve_pose_lm(
         except np.linalg.LinAlgError:
             break
         T_new = T @ se3_exp(dx)
-        candidate = problem.evaluate(T_new)
+        # A candidate that would keep the current Jacobians needs no graph for new ones.
+        chord = settings.reuse_jacobian and accepted >= _RESCALE_STEPS
+        candidate = problem.evaluate(T_new, graph=not chord)
         xi_new = se3_log(T_prior_inv @ T_new)
         cost_new = problem.cost(candidate, scales) + 0.5 * float(prior @ (xi_new * xi_new))
         small = np.linalg.norm(dx[:3]) < settings.tol_t and np.linalg.norm(dx[3:]) < settings.tol_r
@@ -156,12 +165,14 @@ def solve_pose_lm(
             if new_scales is None:
                 break
             scales = new_scales
+        if refreshed or not chord:  # new rows or a new mask: the Jacobians are redone
+            jacobians = None
         H = None
         if small or cost_cur - cost_new < _REL_TOL * cost_cur:
             break
     if H is None:  # the last step was accepted: the information and cost at the final pose
         xi = se3_log(T_prior_inv @ T)
-        H, _ = problem.normal_equations(state, scales)
+        H, _, _ = problem.normal_equations(state, scales, jacobians)
         H = H + np.diag(prior)
         costs.append((problem.cost(state, scales) + 0.5 * float(prior @ (xi * xi)))
                      / scales.kept)
@@ -208,23 +219,26 @@ class _Problem:
         self.reference = reference if reference is not None and settings.reference_weight > 0 \
             else None
 
-    def evaluate(self, T: np.ndarray, refresh: bool = False) -> dict:
-        """Render at pose T (graph kept for the Jacobians); refresh: redo the neighbour search."""
+    def evaluate(self, T: np.ndarray, refresh: bool = False, graph: bool = True) -> dict:
+        """Render at pose T; refresh: redo the neighbour search; graph: keep the autograd graph
+        the Jacobians need (a state without it only gives residuals and costs)."""
         device = self.d_cam.device
         R = torch.as_tensor(T[:3, :3], device=device)
-        rays_d = (self.d_cam @ R.T).float().requires_grad_(True)
+        rays_d = (self.d_cam @ R.T).float().requires_grad_(graph)
         rays_o = torch.as_tensor(T[:3, 3], device=device).float().expand_as(rays_d) \
-            .clone().requires_grad_(True)
+            .clone().requires_grad_(graph)
         if refresh or self.neighbours is None:
             x = rays_o.detach()[:, None, :] + self.t[..., None] * rays_d.detach()[:, None, :]
             self.neighbours = self.index.query(x.reshape(-1, 3), self.s.k, self.s.radius)
             self.T_search = T.copy()
             self.render_cache = {}
-        out = render_samples(self.point_map, self.decoders, rays_o, rays_d, self.t, self.s.k,
-                             self.s.radius, features=self.features, backend=self.s.backend,
-                             chunk=self.s.chunk, neighbours=self.neighbours,
-                             color=self.gray_obs is not None, cache=self.render_cache)
-        state = {"R": R, "rays_o": rays_o, "rays_d": rays_d, "out": out,
+        with torch.set_grad_enabled(graph):
+            out = render_samples(self.point_map, self.decoders, rays_o, rays_d, self.t,
+                                 self.s.k, self.s.radius, features=self.features,
+                                 backend=self.s.backend, chunk=self.s.chunk,
+                                 neighbours=self.neighbours, color=self.gray_obs is not None,
+                                 cache=self.render_cache)
+        state = {"R": R, "rays_o": rays_o, "rays_d": rays_d, "out": out, "graph": graph,
                  "r_depth": out["depth"].detach().double() - self.depth_obs}
         if self.gray_obs is not None:
             state["gray"] = out["color"].mean(-1)
@@ -285,16 +299,25 @@ class _Problem:
                 total = total + self.s.reference_weight * _huber(x, self.s.huber).sum()
         return float(total)
 
-    def normal_equations(self, state: dict, sc: _Scales) -> tuple[np.ndarray, np.ndarray]:
-        """H = J^T W J and g = J^T W r over the kept pixels (float64 numpy, [6, 6] and [6])."""
+    def normal_equations(
+        self, state: dict, sc: _Scales, jacobians: list[torch.Tensor] | None = None
+    ) -> tuple[np.ndarray, np.ndarray, list[torch.Tensor]]:
+        """H = J^T W J and g = J^T W r over the kept pixels (float64 numpy, [6, 6] and [6]),
+        and the rendered terms' scaled Jacobians of the kept pixels ([kept, 6] per kind).
+        jacobians: those of an earlier call with the same mask, used instead of new ones."""
         kinds = [("depth", state["out"]["depth"], state["r_depth"], sc.depth, 1.0)]
         if self.gray_obs is not None:
             kinds.append(("color", state["gray"], state["r_color"], sc.color,
                           self.s.color_weight))
+        if jacobians is None:
+            if not state["graph"]:
+                raise RuntimeError("normal_equations: the state was rendered without a graph "
+                                   "and no Jacobians were given")
+            jacobians = [self._jacobian(state, value, retain=i + 1 < len(kinds))[sc.mask]
+                         / scale for i, (_, value, _, scale, _) in enumerate(kinds)]
         H = torch.zeros(6, 6, dtype=torch.float64, device=self.d_cam.device)
         g = torch.zeros(6, dtype=torch.float64, device=self.d_cam.device)
-        for i, (_, value, residual, scale, weight) in enumerate(kinds):
-            J = self._jacobian(state, value, retain=i + 1 < len(kinds))[sc.mask] / scale
+        for J, (_, _, residual, scale, weight) in zip(jacobians, kinds, strict=True):
             r = residual[sc.mask] / scale
             w = weight * _huber_weight(r, self.s.huber)
             H += (J * w[:, None]).T @ J
@@ -307,7 +330,7 @@ class _Problem:
                 w = self.s.reference_weight * _huber_weight(r, self.s.huber)
                 H += (J * w[:, None]).T @ J
                 g += (J * w[:, None]).T @ r
-        return H.cpu().numpy(), g.cpu().numpy()
+        return H.cpu().numpy(), g.cpu().numpy(), jacobians
 
     def _jacobian(self, state: dict, value: torch.Tensor, retain: bool) -> torch.Tensor:
         """d value_r / d xi [R, 6] for the per-ray rendered quantity value [R]."""

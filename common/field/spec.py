@@ -66,8 +66,9 @@ class FieldSpec:
         n_uniform: other counts than the spec's, e.g. the tracker's)."""
         return RaySampler(
             n_near=self.n_near if n_near is None else n_near,
-            n_uniform=self.n_uniform if n_uniform is None else n_uniform, min_depth=self.no_depth_near,
-            perturb=perturb, near_lo=self.near_lo, near_hi=self.near_hi, far_hi=self.far_hi,
+            n_uniform=self.n_uniform if n_uniform is None else n_uniform,
+            min_depth=self.no_depth_near, perturb=perturb, near_lo=self.near_lo,
+            near_hi=self.near_hi, far_hi=self.far_hi,
         )
 
     def point_map(self, agent_id: int, device: str | torch.device) -> NeuralPointMap:
