@@ -31,7 +31,7 @@ def tracker_args_from_config(tracking_cfg: TrackingConfig) -> dict[str, Any]:
         early_stop_tol=tr.early_stop_tol, pixel_sampling=tr.pixel_sampling, method=tr.method,
         prior_sigma_t=tr.prior_sigma_t, prior_sigma_r=tr.prior_sigma_r,
         reference_weight=tr.reference_weight, reference_pixels=tr.reference_pixels,
-        n_near=tr.n_near, n_uniform=tr.n_uniform, reuse_jacobian=tr.reuse_jacobian,
+        n_near=tr.n_near, n_uniform=tr.n_uniform, relinearise_steps=tr.relinearise_steps,
     )
 
 

@@ -153,8 +153,8 @@ class TrackingConfig(Section):
     """lm: weight of luminance and depth residuals against the latest keyframe (0 = off)."""
     reference_pixels: PositiveInt = 2000
     """lm: pixels of the frame compared with the latest keyframe."""
-    reuse_jacobian: bool = False
-    """lm: once the robust weights are kept, steps reuse the last Jacobians (chord steps)."""
+    relinearise_steps: NonNegativeInt | None = None
+    """lm: accepted steps that get new Jacobians; later ones reuse them (null: every step)."""
     n_near: PositiveInt | None = None
     """Samples per tracking ray around the measured depth (null: field.n_near)."""
     n_uniform: NonNegativeInt | None = None

@@ -24,11 +24,11 @@ its farthest sample by more than `reuse_neighbours`. The mask and scales are re-
 after each of the first three accepted steps and after a new search, then kept: re-weighting
 at every step can cycle between two poses a fraction of a millimetre apart. Converged when a
 step moves less than `tol_t` metres and `tol_r` radians (accepted or not) or an accepted one
-lowers the cost by less than a relative 1e-5. With `reuse_jacobian`, once the mask and scales
-are kept, an accepted step keeps the Jacobians of the last linearisation point and only
-recomputes the residuals, their robust weights and so H and g (a chord step): the pose then
-moves by a fraction of a millimetre per step, over which the Jacobians hardly change, and
-the candidates are rendered without the graph the Jacobians would need. The cost that
+lowers the cost by less than a relative 1e-5. With `relinearise_steps` = n, only the first n
+accepted steps (and any that redo the neighbour search) get new Jacobians; later ones keep
+those of the last linearisation point and recompute only the residuals, their robust weights
+and so H and g (chord steps), and their candidates are rendered without the autograd graph.
+The pose then moves by little per step, over which the Jacobians hardly change; the cost that
 accepts or rejects a step is exact either way.
 
 The solution's information matrix (H at the last linearisation point, 6 x 6, translation
@@ -79,7 +79,7 @@ class LMSettings:
     depth_floor: float = 0.002
     color_floor: float = 0.01
     reference_weight: float = 0.0
-    reuse_jacobian: bool = False
+    relinearise_steps: int | None = None
 
 
 @dataclass
@@ -144,7 +144,8 @@ def solve_pose_lm(
             break
         T_new = T @ se3_exp(dx)
         # A candidate that would keep the current Jacobians needs no graph for new ones.
-        chord = settings.reuse_jacobian and accepted >= _RESCALE_STEPS
+        chord = settings.relinearise_steps is not None \
+            and accepted >= settings.relinearise_steps
         candidate = problem.evaluate(T_new, graph=not chord)
         xi_new = se3_log(T_prior_inv @ T_new)
         cost_new = problem.cost(candidate, scales) + 0.5 * float(prior @ (xi_new * xi_new))
@@ -165,7 +166,7 @@ def solve_pose_lm(
             if new_scales is None:
                 break
             scales = new_scales
-        if refreshed or not chord:  # new rows or a new mask: the Jacobians are redone
+        if refreshed or not chord:  # new neighbours, or still relinearising
             jacobians = None
         H = None
         if small or cost_cur - cost_new < _REL_TOL * cost_cur:
@@ -303,8 +304,8 @@ class _Problem:
         self, state: dict, sc: _Scales, jacobians: list[torch.Tensor] | None = None
     ) -> tuple[np.ndarray, np.ndarray, list[torch.Tensor]]:
         """H = J^T W J and g = J^T W r over the kept pixels (float64 numpy, [6, 6] and [6]),
-        and the rendered terms' scaled Jacobians of the kept pixels ([kept, 6] per kind).
-        jacobians: those of an earlier call with the same mask, used instead of new ones."""
+        and the rendered terms' Jacobians of every ray ([R, 6] per kind).
+        jacobians: those of an earlier call (same rays), used instead of new ones."""
         kinds = [("depth", state["out"]["depth"], state["r_depth"], sc.depth, 1.0)]
         if self.gray_obs is not None:
             kinds.append(("color", state["gray"], state["r_color"], sc.color,
@@ -313,11 +314,12 @@ class _Problem:
             if not state["graph"]:
                 raise RuntimeError("normal_equations: the state was rendered without a graph "
                                    "and no Jacobians were given")
-            jacobians = [self._jacobian(state, value, retain=i + 1 < len(kinds))[sc.mask]
-                         / scale for i, (_, value, _, scale, _) in enumerate(kinds)]
+            jacobians = [self._jacobian(state, value, retain=i + 1 < len(kinds))
+                         for i, (_, value, _, _, _) in enumerate(kinds)]
         H = torch.zeros(6, 6, dtype=torch.float64, device=self.d_cam.device)
         g = torch.zeros(6, dtype=torch.float64, device=self.d_cam.device)
-        for J, (_, _, residual, scale, weight) in zip(jacobians, kinds, strict=True):
+        for J_all, (_, _, residual, scale, weight) in zip(jacobians, kinds, strict=True):
+            J = J_all[sc.mask] / scale
             r = residual[sc.mask] / scale
             w = weight * _huber_weight(r, self.s.huber)
             H += (J * w[:, None]).T @ J

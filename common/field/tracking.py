@@ -117,8 +117,8 @@ class Tracker:
             and how many of the frame's pixels enter them (0 = off).
         n_near, n_uniform: samples per ray around the observed depth and uniform ones
             (None: the spec's, as mapping uses).
-        reuse_jacobian: "lm" only: chord steps once the robust weights are kept (see
-            `cpslam.common.field.pose_lm`).
+        relinearise_steps: "lm" only: accepted steps per solve that get new Jacobians, later
+            ones reuse them (None: every step; see `cpslam.common.field.pose_lm`).
     """
 
     def __init__(
@@ -144,7 +144,7 @@ class Tracker:
         reference_pixels: int,
         n_near: int | None = None,
         n_uniform: int | None = None,
-        reuse_jacobian: bool = False,
+        relinearise_steps: int | None = None,
         reuse_neighbours: float = 0.01,
     ) -> None:
         if iters < 1 or n_pixels < 1 or lr <= 0:
@@ -181,7 +181,7 @@ class Tracker:
         self.k, self.radius = spec.k_neighbors, spec.radius
         self.backend, self.chunk = spec.neighbour_backend, spec.chunk_rays
         self.reuse_neighbours = reuse_neighbours
-        self.reuse_jacobian = reuse_jacobian
+        self.relinearise_steps = relinearise_steps
 
     def track(
         self,
@@ -349,7 +349,7 @@ class Tracker:
             var_factor=self.var_factor, k=self.k, radius=self.radius, backend=self.backend,
             chunk=self.chunk, reuse_neighbours=self.reuse_neighbours,
             prior_sigma_t=self.prior_sigma_t, prior_sigma_r=self.prior_sigma_r,
-            reference_weight=self.reference_weight, reuse_jacobian=self.reuse_jacobian)
+            reference_weight=self.reference_weight, relinearise_steps=self.relinearise_steps)
         intr = self.intrinsics
         gray = None if color_obs is None else color_obs.mean(-1)
         decoders.requires_grad_(False)

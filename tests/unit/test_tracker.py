@@ -254,10 +254,10 @@ def test_lm_recovers_2cm_2deg_perturbation_and_stops(fitted: dict) -> None:
 
 def test_lm_chord_steps_reach_the_same_pose_with_fewer_jacobians(fitted: dict,
                                                                  monkeypatch) -> None:
-    """reuse_jacobian keeps the Jacobians once the robust weights are kept: the pose ends
+    """relinearise_steps keeps the Jacobians after that many accepted steps: the pose ends
     within the exact solver's bounds and near its pose, after fewer backward passes. On the
-    AVX-512 and AVX2 code paths the two poses were 0.02-0.04 cm and 0.007-0.03 degrees apart
-    (bounds 0.3 cm, 0.2 degrees), with 4-5 backward passes against 9."""
+    AVX-512 and AVX2 code paths, with 3 steps, the two poses were 0.02-0.04 cm and 0.007-0.03
+    degrees apart (bounds 0.3 cm, 0.2 degrees), with 4-5 backward passes against 9."""
     from cpslam.common.field import pose_lm
 
     passes = {"n": 0}
@@ -275,7 +275,8 @@ def test_lm_chord_steps_reach_the_same_pose_with_fewer_jacobians(fitted: dict,
         found = {}
         for reuse in (False, True):
             passes["n"] = 0
-            result = fitted_track(fitted, _lm(fitted, reuse_jacobian=reuse), T_init, seed)
+            steps = 3 if reuse else None
+            result = fitted_track(fitted, _lm(fitted, relinearise_steps=steps), T_init, seed)
             t1, r1 = _errors(result.T_world_cam, T_true)
             assert t1 < 0.008 and r1 < 0.5, (seed, reuse, t1, r1)
             assert np.linalg.eigvalsh(result.information).min() > 0
