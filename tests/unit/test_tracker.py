@@ -285,3 +285,20 @@ def test_lm_chord_steps_reach_the_same_pose_with_fewer_jacobians(fitted: dict,
         assert apart_t < 0.003 and apart_r < 0.2, (seed, apart_t, apart_r)
         # Per solve, the chord steps run fewer backward passes than a full linearisation each.
         assert found[True][1] / found[True][2] < found[False][1] / found[False][2], found
+
+
+def test_tracker_samples_per_ray_may_differ_from_mapping() -> None:
+    """tracking.n_near / n_uniform reach the tracker's sampler; null keeps the field's."""
+    from cpslam.common.config import load_config
+    from cpslam.common.field_config import tracker_args_from_config
+
+    intr = Intrinsics(64.0, 64.0, 39.5, 29.5, 80, 60)
+    cfg = load_config("cpu", overrides=["tracking.n_near=3", "tracking.n_uniform=0"], env={})
+    own = Tracker(intr, SPEC, **tracker_args(**{
+        k: v for k, v in tracker_args_from_config(cfg.tracking).items()
+        if k in ("n_near", "n_uniform")}))
+    assert (own.sampler.n_near, own.sampler.n_uniform) == (3, 0)
+    field = Tracker(intr, SPEC, **tracker_args())
+    assert (field.sampler.n_near, field.sampler.n_uniform) == (SPEC.n_near, SPEC.n_uniform)
+    with pytest.raises(ValueError):
+        load_config("cpu", overrides=["tracking.n_near=0"], env={})
