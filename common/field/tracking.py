@@ -142,9 +142,9 @@ class Tracker:
         prior_sigma_r: float,
         reference_weight: float,
         reference_pixels: int,
-        n_near: int | None = None,
-        n_uniform: int | None = None,
-        relinearise_steps: int | None = None,
+        n_near: int | None,
+        n_uniform: int | None,
+        relinearise_steps: int | None,
         reuse_neighbours: float = 0.01,
     ) -> None:
         if iters < 1 or n_pixels < 1 or lr <= 0:

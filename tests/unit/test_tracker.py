@@ -294,9 +294,7 @@ def test_tracker_samples_per_ray_may_differ_from_mapping() -> None:
 
     intr = Intrinsics(64.0, 64.0, 39.5, 29.5, 80, 60)
     cfg = load_config("cpu", overrides=["tracking.n_near=3", "tracking.n_uniform=0"], env={})
-    own = Tracker(intr, SPEC, **tracker_args(**{
-        k: v for k, v in tracker_args_from_config(cfg.tracking).items()
-        if k in ("n_near", "n_uniform")}))
+    own = Tracker(intr, SPEC, **tracker_args_from_config(cfg.tracking))
     assert (own.sampler.n_near, own.sampler.n_uniform) == (3, 0)
     field = Tracker(intr, SPEC, **tracker_args())
     assert (field.sampler.n_near, field.sampler.n_uniform) == (SPEC.n_near, SPEC.n_uniform)
