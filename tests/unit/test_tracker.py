@@ -236,13 +236,18 @@ def _lm(scene: dict, **kwargs) -> Tracker:
     return Tracker(scene["intr"], SPEC, **args)
 
 
+def _off_2cm_2deg(T_true: np.ndarray) -> np.ndarray:
+    """T_true moved by about 2 cm and rotated by 2 degrees about a skew axis."""
+    axis = np.array([1.0, -2.0, 0.5]) / np.linalg.norm([1.0, -2.0, 0.5])
+    return T_true @ se3_exp(np.concatenate(([0.012, 0.010, -0.012], np.radians(2.0) * axis)))
+
+
 def test_lm_recovers_2cm_2deg_perturbation_and_stops(fitted: dict) -> None:
     """Over eight pixel-draw seeds, on the AVX-512 and AVX2 code paths: 0.06-0.32 cm and
     0.02-0.14 degrees from the truth after 7-8 solves, inlier ratio 0.87-0.93, residual
     0.28-0.36 cm; each bound leaves at least that spread again as margin."""
     T_true = fitted["T_true"]
-    axis = np.array([1.0, -2.0, 0.5]) / np.linalg.norm([1.0, -2.0, 0.5])
-    T_init = T_true @ se3_exp(np.concatenate(([0.012, 0.010, -0.012], np.radians(2.0) * axis)))
+    T_init = _off_2cm_2deg(T_true)
     for seed in range(3):
         result = fitted_track(fitted, _lm(fitted), T_init, seed)
         t1, r1 = _errors(result.T_world_cam, T_true)
@@ -269,8 +274,7 @@ def test_lm_chord_steps_reach_the_same_pose_with_fewer_jacobians(fitted: dict,
 
     monkeypatch.setattr(pose_lm._Problem, "_jacobian", counted)
     T_true = fitted["T_true"]
-    axis = np.array([1.0, -2.0, 0.5]) / np.linalg.norm([1.0, -2.0, 0.5])
-    T_init = T_true @ se3_exp(np.concatenate(([0.012, 0.010, -0.012], np.radians(2.0) * axis)))
+    T_init = _off_2cm_2deg(T_true)
     for seed in range(2):
         found = {}
         for reuse in (False, True):
