@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from cpslam.agent.mapper import View
-from cpslam.agent.schedule import MapJob
+from cpslam.agent.schedule import MapJob, torch_threads
 
 if TYPE_CHECKING:
     from cpslam.agent.odometry import Odometry
@@ -41,6 +41,7 @@ def mapping_job(odo: Odometry, current: Frame, T_world_cam: np.ndarray, kf_id: i
     if count == 0:
         job.iters, job.n_pixels = odo.iters_first, odo.n_pixels_first
         job.publish_every = odo.first_publish_every
+        job.waited_for = job.publish_every == 0
     else:
         job.iters = odo.iters_after_fusion if odo.fused else odo.iters
         job.n_pixels = odo.n_pixels
@@ -80,10 +81,11 @@ def refit(odo: Odometry, generator: torch.Generator) -> tuple[int, float]:
         return 0, 0.0  # nothing to fit on (resumed): the next mapping call does it
     odo.fused = False
     work = odo.maps.work
-    result = odo.mapper.optimise(work.point_map, work.decoders,
-                                 covisible_views(odo, last.rgb_t, last.depth_t,
-                                                 odo.frames.poses[-1]),
-                                 odo.iters_after_fusion, odo.n_pixels, generator)
+    with torch_threads(odo.all_threads):  # the tracker waits for it
+        result = odo.mapper.optimise(work.point_map, work.decoders,
+                                     covisible_views(odo, last.rgb_t, last.depth_t,
+                                                     odo.frames.poses[-1]),
+                                     odo.iters_after_fusion, odo.n_pixels, generator)
     odo.maps.republish()
     logger.debug("re-fit after a change from the server: %d steps, loss %.4f -> %.4f",
                  result.steps, result.loss_first, result.loss_last)

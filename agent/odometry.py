@@ -113,6 +113,7 @@ class Odometry:
         schedule: str = "lockstep",
         max_pending_keyframes: int = 2,
         mapping_threads: int | None = None,
+        all_threads: int | None = None,
         first_publish_every: int = 0,
     ) -> None:
         if init not in MOTION_MODELS:
@@ -125,7 +126,8 @@ class Odometry:
         self.cnn = cnn
         self.maps = MapSchedule(MapState(point_map, decoders), self._run_job,
                                 schedule=schedule, max_pending_keyframes=max_pending_keyframes,
-                                threads=mapping_threads)
+                                threads=mapping_threads, solo_threads=all_threads)
+        self.all_threads = all_threads
         self._unreported: list[MapOutcome] = []  # finished outside `step`, reported next
         self.tracker, self.mapper, self.keyframes = tracker, mapper, keyframes
         self.map_every, self.kf_every = map_every, kf_every
@@ -158,6 +160,8 @@ class Odometry:
         tr, mp = cfg.tracking, cfg.mapping
         seed = cfg.run.seed
         spec = field_spec(cfg.field)
+        concurrent = cfg.run.schedule == "concurrent"
+        all_threads = torch.get_num_threads() if concurrent else None
         return cls(
             intrinsics,
             spec.point_map(agent_id, device),
@@ -175,7 +179,7 @@ class Odometry:
             recovery=Recovery.from_config(cfg.recovery, tr.iters) if cfg.recovery.enabled
             else None,
             schedule=cfg.run.schedule, max_pending_keyframes=mp.max_pending_keyframes,
-            mapping_threads=split_threads() if cfg.run.schedule == "concurrent" else None,
+            mapping_threads=split_threads() if concurrent else None, all_threads=all_threads,
             first_publish_every=mp.first_publish_every,
         )
 

@@ -18,6 +18,10 @@ when `max_pending_keyframes` of them already wait, the tracker waits for room (c
 
 A job with `publish_every` > 0 (the first mapping call) also publishes a copy every that many
 steps, so tracking starts from the map as it is then instead of waiting for the whole call.
+
+Threads: the worker runs with its own share of the process's torch threads, the tracker with
+the rest. A job the tracker waits for whole (`MapJob.waited_for`: the first call, when it is
+not published part way) runs with all of them, the tracker's share idling meanwhile.
 """
 
 from __future__ import annotations
@@ -41,7 +45,7 @@ from cpslam.common.field import Decoders, FeatureCNN, NeuralPointMap
 logger = logging.getLogger(__name__)
 
 __all__ = ["SCHEDULES", "MapJob", "MapOutcome", "MapSchedule", "MapState", "MappingWorker",
-           "run_map_job", "split_threads"]
+           "run_map_job", "split_threads", "torch_threads"]
 
 SCHEDULES = ("concurrent", "lockstep")
 
@@ -83,6 +87,7 @@ class MapJob:
     pose_lr: float = 0.0
     generator: torch.Generator | None = None
     publish_every: int = 0  # concurrent: also publish every this many steps (0: at the end)
+    waited_for: bool = False  # the tracker waits for its end: it may use every thread
 
     @property
     def droppable(self) -> bool:
@@ -136,6 +141,19 @@ def split_threads() -> int:
     return mapping
 
 
+@contextmanager
+def torch_threads(n: int | None) -> Iterator[None]:
+    """This thread's torch CPU threads set to n (None: unchanged) for the block, then restored."""
+    before = torch.get_num_threads()
+    if n is not None and n != before:
+        torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        if torch.get_num_threads() != before:
+            torch.set_num_threads(before)
+
+
 class MappingWorker:
     """Runs `MapJob`s in order on a thread of its own (see the module docstring).
 
@@ -147,6 +165,7 @@ class MappingWorker:
         publish: makes a snapshot the tracker's (once its copies are complete on CUDA).
         max_pending_keyframes: keyframe jobs that may wait before `submit` blocks.
         threads: torch CPU threads of the worker (None = torch's default for a new thread).
+        solo_threads: its threads for a job with `waited_for` set (None = `threads`).
         device: the map's device; on CUDA the worker uses a stream of its own.
     """
 
@@ -154,13 +173,14 @@ class MappingWorker:
                  snapshot: Callable[[], MapState],
                  publish: Callable[[MapState], None], *,
                  max_pending_keyframes: int, threads: int | None,
-                 device: torch.device) -> None:
+                 device: torch.device, solo_threads: int | None = None) -> None:
         if max_pending_keyframes < 1:
             raise ValueError(f"MappingWorker: max_pending_keyframes must be >= 1, got "
                              f"{max_pending_keyframes}")
         self._run, self._snapshot, self._publish = run, snapshot, publish
         self.max_pending_keyframes = max_pending_keyframes
         self.threads, self.device = threads, device
+        self.solo_threads = solo_threads if solo_threads is not None else threads
         self.counts = {"jobs": 0, "skipped": 0, "waits": 0, "checkpoints": 0}
         self.wait_s = 0.0
         self._jobs: deque[MapJob] = deque()
@@ -253,7 +273,8 @@ class MappingWorker:
                 self._busy = True
                 self._cond.notify_all()  # a tracker waiting for room may go on
             try:
-                with torch.cuda.stream(stream) if stream is not None else nullcontext():
+                with torch.cuda.stream(stream) if stream is not None else nullcontext(), \
+                        torch_threads(self.solo_threads if job.waited_for else None):
                     outcome = self._run(job, self._checkpoint)
                     snapshot = self._snapshot() if job.optimise else None
                 if stream is not None:
@@ -297,12 +318,13 @@ class MapSchedule:
         run: runs one job on a state (`run_map_job` with the odometry's mapper bound); its
             third argument publishes mid-way (None in lock-step, where nobody reads meanwhile).
         schedule: "concurrent" or "lockstep".
-        max_pending_keyframes, threads: the `MappingWorker`'s (concurrent only).
+        max_pending_keyframes, threads, solo_threads: the `MappingWorker`'s (concurrent only).
     """
 
     def __init__(self, state: MapState,
                  run: Callable[[MapJob, MapState, Callable[[], None] | None], MapOutcome], *,
-                 schedule: str, max_pending_keyframes: int, threads: int | None) -> None:
+                 schedule: str, max_pending_keyframes: int, threads: int | None,
+                 solo_threads: int | None = None) -> None:
         if schedule not in SCHEDULES:
             raise ValueError(f"schedule must be one of {SCHEDULES}, got {schedule!r}")
         self.schedule = schedule
@@ -315,7 +337,7 @@ class MapSchedule:
             lambda job, checkpoint: run(job, self.work, checkpoint), lambda: self.work.copy(),
             self._publish,
             max_pending_keyframes=max_pending_keyframes, threads=threads,
-            device=state.point_map.device)
+            device=state.point_map.device, solo_threads=solo_threads)
 
     @property
     def concurrent(self) -> bool:

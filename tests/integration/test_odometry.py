@@ -279,3 +279,45 @@ def test_concurrent_schedule_follows_lockstep(sequence_dir: Path) -> None:
         assert gap.max() < 0.01, gap.max()
     for poses in (lockstep, *runs.values()):
         assert evaluate_ate(stamps, gt, stamps, poses, align="se3").rmse < 0.08
+
+
+@pytest.mark.parametrize("publish_every", [0, 10])
+def test_mapping_the_tracker_waits_for_uses_every_thread(sequence_dir: Path, monkeypatch,
+                                                         publish_every: int) -> None:
+    """Concurrent schedule with two torch threads: the mapping thread's own share is one.
+    The first call, which frame 1 waits for whole, and a re-fit after a server change, which
+    the tracker runs itself, use both; so does nothing else. A first call published part way
+    leaves the tracker working meanwhile and keeps to one."""
+    cfg = load_config("tiny", overrides=[*QUICK, "run.schedule=concurrent",
+                                         "run.num_threads=2", "mapping.iters_after_fusion=5",
+                                         f"mapping.first_publish_every={publish_every}"],
+                      env={})
+    frames, seq = _frames(sequence_dir, cfg.camera.downscale, n=12)
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)  # as configure_torch does for run.num_threads=2
+    try:
+        odometry = Odometry.from_config(cfg, seq.intrinsics.scaled(cfg.camera.downscale),
+                                        "cpu")
+        tracker_threads = torch.get_num_threads()
+        calls: list[tuple[int, int]] = []  # (steps, threads) per optimise call
+        optimise = odometry.mapper.optimise
+
+        def spy(*args, **kwargs):
+            calls.append((args[3], torch.get_num_threads()))
+            return optimise(*args, **kwargs)
+
+        monkeypatch.setattr(odometry.mapper, "optimise", spy)
+        try:
+            for i, frame in enumerate(frames):
+                if i == 11:
+                    odometry.mark_fused()
+                odometry.step(frame)
+            odometry.drain()
+        finally:
+            odometry.close()
+    finally:
+        torch.set_num_threads(before)
+    assert tracker_threads == 1
+    assert calls[0] == (20, 1 if publish_every else 2)
+    assert (5, 2) in calls  # the re-fit
+    assert all(threads == 1 for steps, threads in calls[1:] if steps != 5), calls

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from cpslam.agent.schedule import MapJob, MapOutcome, MapSchedule, MapState
+from cpslam.agent.schedule import MapJob, MapOutcome, MapSchedule, MapState, torch_threads
 from tests.unit.spec_helpers import spec
 
 N_POINTS = 64
@@ -247,3 +247,37 @@ def test_unknown_schedule_is_refused() -> None:
     with pytest.raises(ValueError, match="schedule must be one of"):
         MapSchedule(_state(), lambda job, s, checkpoint: _outcome(job), schedule="async",
                     max_pending_keyframes=1, threads=None)
+
+
+def test_a_job_the_tracker_waits_for_runs_with_every_thread() -> None:
+    """`waited_for` jobs get the worker's solo thread count, the others its own share; the
+    worker's count is its own share again after a solo job."""
+    seen: list[tuple[int, int]] = []
+
+    def run(job: MapJob, s: MapState, checkpoint: object) -> MapOutcome:
+        seen.append((job.count, torch.get_num_threads()))
+        return _outcome(job)
+
+    tracker_threads = torch.get_num_threads()
+    maps = MapSchedule(_state(), run, schedule="concurrent", max_pending_keyframes=2,
+                       threads=1, solo_threads=3)
+    try:
+        first = _job(0, keyframe=True)
+        first.waited_for = True
+        for job in (first, _job(1), _job(2, keyframe=True)):
+            maps.submit(job)
+            maps.drain()  # one at a time: none is skipped
+    finally:
+        maps.close()
+    assert seen == [(0, 3), (1, 1), (2, 1)]
+    assert torch.get_num_threads() == tracker_threads  # the tracker's own count is untouched
+
+
+def test_torch_threads_restores_the_count_after_an_error() -> None:
+    before = torch.get_num_threads()
+    with pytest.raises(RuntimeError), torch_threads(before + 1):
+        assert torch.get_num_threads() == before + 1
+        raise RuntimeError("inside")
+    assert torch.get_num_threads() == before
+    with torch_threads(None):
+        assert torch.get_num_threads() == before
