@@ -155,6 +155,8 @@ class TrackingConfig(Section):
     """lm: pixels of the frame compared with the latest keyframe."""
     relinearise_steps: NonNegativeInt | None = None
     """lm: accepted steps that get new Jacobians; later ones reuse them (null: every step)."""
+    depth_iters: PositiveInt | None = None
+    """lm with colour: solves of the depth-only phase before the luminance one (null: iters)."""
     n_near: PositiveInt | None = None
     """Samples per tracking ray around the measured depth (null: field.n_near)."""
     n_uniform: NonNegativeInt | None = None

@@ -9,7 +9,8 @@ Two optimisers (`method`):
   stops when the pose no longer moves, and leaves directions the image cannot constrain at
   the initial guess, where Adam, which normalises every coordinate's step, moves them by its
   learning rate whatever the size of their gradient. With a colour weight it runs twice:
-  depth alone from the initial guess, then depth and luminance from there.
+  depth alone from the initial guess (at most `depth_iters` solves), then depth and
+  luminance from there (at most `iters`).
 
 Per frame, `n_pixels` pixels with valid depth and their ray samples are drawn once (from the
 caller's generator), so the loss is a deterministic function of the pose: keeping the
@@ -37,6 +38,7 @@ another agent's sub-map, `cpslam.server.loops.refinement`), so it lives with the
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from dataclasses import dataclass, field
@@ -119,6 +121,8 @@ class Tracker:
             (None: the spec's, as mapping uses).
         relinearise_steps: "lm" only: accepted steps per solve that get new Jacobians, later
             ones reuse them (None: every step; see `cpslam.common.field.pose_lm`).
+        depth_iters: "lm" with a colour term only: solves of the depth-only phase before the
+            luminance one (None: `iters`); a call with its own `iters` uses those for both.
     """
 
     def __init__(
@@ -145,8 +149,11 @@ class Tracker:
         n_near: int | None,
         n_uniform: int | None,
         relinearise_steps: int | None,
+        depth_iters: int | None,
         reuse_neighbours: float = 0.01,
     ) -> None:
+        if depth_iters is not None and depth_iters < 1:
+            raise ValueError(f"Tracker: depth_iters must be >= 1 or None, got {depth_iters}")
         if iters < 1 or n_pixels < 1 or lr <= 0:
             raise ValueError(f"Tracker: need iters >= 1, n_pixels >= 1, lr > 0; got {iters}, "
                              f"{n_pixels}, {lr}")
@@ -182,6 +189,7 @@ class Tracker:
         self.backend, self.chunk = spec.neighbour_backend, spec.chunk_rays
         self.reuse_neighbours = reuse_neighbours
         self.relinearise_steps = relinearise_steps
+        self.depth_iters = depth_iters
 
     def track(
         self,
@@ -201,7 +209,9 @@ class Tracker:
         pixels and sample jitter; iters: steps for this call (default: the tracker's);
         reference: a view ("lm" with reference_weight > 0) the frame is also compared with.
         """
+        explicit = iters is not None
         iters = self.iters if iters is None else int(iters)
+        depth_iters = iters if explicit or self.depth_iters is None else self.depth_iters
         if tuple(depth.shape) != self.intrinsics.shape:
             raise ValueError(f"Tracker.track: depth is {tuple(depth.shape)}, the intrinsics "
                              f"say {self.intrinsics.shape}")
@@ -218,7 +228,7 @@ class Tracker:
             if reference is not None and self.reference_weight > 0:
                 terms = self._reference_points(rgb, depth, generator, reference)
             return self._track_lm(point_map, decoders, u, v, t, depth_obs, color_obs, T_init,
-                                  iters, terms)
+                                  iters, depth_iters, terms)
         t_far = float(t.max())
         index = point_map.neighbour_index(self.backend)
         features = point_map.features.detach()  # the map is fixed: no feature gradients
@@ -343,7 +353,7 @@ class Tracker:
     def _track_lm(self, point_map: NeuralPointMap, decoders: Decoders, u: torch.Tensor,
                   v: torch.Tensor, t: torch.Tensor, depth_obs: torch.Tensor,
                   color_obs: torch.Tensor | None, T_init: np.ndarray, iters: int,
-                  reference: tuple | None = None) -> TrackResult:
+                  depth_iters: int, reference: tuple | None = None) -> TrackResult:
         settings = LMSettings(
             iters=iters, color_weight=self.color_weight, err_hi=self.err_hi,
             var_factor=self.var_factor, k=self.k, radius=self.radius, backend=self.backend,
@@ -360,7 +370,8 @@ class Tracker:
                 # pose), while luminance is periodic on striped or tiled texture and, from a
                 # guess a degree off, pulls towards the wrong stripe.
                 first = solve_pose_lm(point_map, decoders, u, v, t, depth_obs, None, intr.fx,
-                                      intr.fy, intr.cx, intr.cy, T_init, settings)
+                                      intr.fy, intr.cx, intr.cy, T_init,
+                                      dataclasses.replace(settings, iters=depth_iters))
                 T_start = first.T_world_cam
             sol = solve_pose_lm(point_map, decoders, u, v, t, depth_obs, gray, intr.fx, intr.fy,
                                 intr.cx, intr.cy, T_start, settings, reference)

@@ -291,6 +291,36 @@ def test_lm_chord_steps_reach_the_same_pose_with_fewer_jacobians(fitted: dict,
         assert found[True][1] / found[True][2] < found[False][1] / found[False][2], found
 
 
+def test_lm_depth_stage_has_its_own_cap(fitted: dict, monkeypatch) -> None:
+    """tracking.depth_iters caps the depth-only solve before the luminance one; a call with
+    its own iters (a recovery's re-track) gives both stages that count; null keeps iters."""
+    from cpslam.common.field import tracking
+
+    caps: list[int] = []
+    solve = tracking.solve_pose_lm
+
+    def spy(*args, **kwargs):
+        caps.append(args[12].iters)  # the LMSettings
+        return solve(*args, **kwargs)
+
+    monkeypatch.setattr(tracking, "solve_pose_lm", spy)
+    T_init = _off_2cm_2deg(fitted["T_true"])
+    result = fitted_track(fitted, _lm(fitted, color_weight=1.0, depth_iters=2), T_init, 0)
+    t1, r1 = _errors(result.T_world_cam, fitted["T_true"])
+    assert t1 < 0.008 and r1 < 0.5, (t1, r1)
+    assert caps == [2, 20]
+    caps.clear()
+    _lm(fitted, color_weight=1.0, depth_iters=2).track(
+        fitted["map"], fitted["decoders"], torch.from_numpy(fitted["rgb"]).float() / 255,
+        torch.from_numpy(fitted["depth"]), T_init, torch.Generator().manual_seed(0), iters=7)
+    assert caps == [7, 7]
+    caps.clear()
+    fitted_track(fitted, _lm(fitted, color_weight=1.0, depth_iters=None), T_init, 0)
+    assert caps == [20, 20]
+    with pytest.raises(ValueError, match="depth_iters"):
+        _lm(fitted, depth_iters=0)
+
+
 def test_tracker_samples_per_ray_may_differ_from_mapping() -> None:
     """tracking.n_near / n_uniform reach the tracker's sampler; null keeps the field's."""
     from cpslam.common.config import load_config
