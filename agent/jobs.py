@@ -42,6 +42,7 @@ def mapping_job(odo: Odometry, current: Frame, T_world_cam: np.ndarray, kf_id: i
         job.iters, job.n_pixels = odo.iters_first, odo.n_pixels_first
         job.publish_every = odo.first_publish_every
         job.waited_for = job.publish_every == 0
+        job.lr_scale = odo.lr_scale_first
     else:
         job.iters = odo.iters_after_fusion if odo.fused else odo.iters
         job.n_pixels = odo.n_pixels

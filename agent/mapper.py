@@ -180,6 +180,7 @@ class Mapper:
         pose_lr: float = 0.0,
         checkpoint_every: int = 0,
         checkpoint: Callable[[], None] | None = None,
+        lr_scale: float = 1.0,
     ) -> MapResult:
         """Optimise features (of the points seen by `views`) and decoders for `iters` steps
         on `n_pixels` pixels per step. Returns the first and last step's loss.
@@ -188,6 +189,9 @@ class Mapper:
         T_world_cam @ exp(xi), xi an se(3) increment in its camera frame, by Adam at this
         rate; the map points stay where they are while it moves, and the refined pose is
         returned in the result (the view itself is left unchanged).
+
+        lr_scale multiplies both learning rates of the map (decoders and features) for this
+        call.
 
         checkpoint_every > 0: every this many steps (not after the last) the features so far
         are written into the map and `checkpoint()` is called, so another thread can publish
@@ -200,8 +204,8 @@ class Mapper:
         rows = self._rows_in_view(point_map, views)
         active = nn.Parameter(point_map.features.detach()[rows].clone())
         groups = [
-            {"params": list(decoders.parameters()), "lr": self.lr_decoders},
-            {"params": [active], "lr": self.lr_features},
+            {"params": list(decoders.parameters()), "lr": self.lr_decoders * lr_scale},
+            {"params": [active], "lr": self.lr_features * lr_scale},
         ]
         if refine:
             T0 = torch.as_tensor(views[0].T_world_cam, dtype=torch.float64,
@@ -212,8 +216,8 @@ class Mapper:
         share = _split(n_pixels, len(views))
         first = last = math.nan
         for it in range(iters):
-            optimiser.param_groups[1]["lr"] = self.lr_features * self.feature_lr_decay ** (
-                it / self.feature_lr_decay_steps)
+            decay = self.feature_lr_decay ** (it / self.feature_lr_decay_steps)
+            optimiser.param_groups[1]["lr"] = lr_scale * self.lr_features * decay
             T_first = T0 @ torch_se3_exp(xi) if refine else None
             rays_o, rays_d, depth_obs, color_obs = _batch(views, share, generator, T_first)
             features = point_map.features.detach().index_copy(0, rows, active)

@@ -101,6 +101,7 @@ class Odometry:
         iters: int,
         iters_after_fusion: int,
         n_pixels_first: int,
+        lr_scale_first: float,
         n_pixels: int,
         covisible_keyframes: int,
         pose_lr: float,
@@ -134,6 +135,7 @@ class Odometry:
         self.iters_first, self.iters, self.iters_after_fusion = iters_first, iters, \
             iters_after_fusion
         self.n_pixels_first, self.n_pixels = n_pixels_first, n_pixels
+        self.lr_scale_first = lr_scale_first
         self.first_publish_every = first_publish_every
         self.covisible_keyframes = covisible_keyframes
         self.pose_lr = pose_lr
@@ -173,6 +175,7 @@ class Odometry:
             map_every=mp.every, kf_every=cfg.keyframes.every, iters_first=mp.iters_first,
             iters=mp.iters, iters_after_fusion=mp.iters_after_fusion,
             n_pixels_first=mp.n_pixels_first, n_pixels=mp.n_pixels,
+            lr_scale_first=mp.lr_scale_first,
             covisible_keyframes=mp.covisible_keyframes, pose_lr=mp.pose_lr, init=tr.init,
             depth_min=cfg.camera.depth_min, depth_max=cfg.camera.depth_max,
             seed=seed, agent_id=agent_id,

@@ -88,6 +88,7 @@ class MapJob:
     generator: torch.Generator | None = None
     publish_every: int = 0  # concurrent: also publish every this many steps (0: at the end)
     waited_for: bool = False  # the tracker waits for its end: it may use every thread
+    lr_scale: float = 1.0  # times the mapper's learning rates
 
     @property
     def droppable(self) -> bool:
@@ -127,6 +128,7 @@ def run_map_job(job: MapJob, state: MapState, mapper: Mapper, cnn: FeatureCNN,
                             job.anchor_kf, job.generator)
     result = mapper.optimise(pm, decoders, job.views, job.iters, job.n_pixels, job.generator,
                              pose_lr=job.pose_lr, checkpoint_every=job.publish_every,
+                             lr_scale=job.lr_scale,
                              checkpoint=checkpoint)
     return MapOutcome(job.count, job.index, job.anchor_kf, ids, result.steps, result.seconds,
                       time.perf_counter() - start, result.T_world_cam)

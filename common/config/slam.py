@@ -222,6 +222,8 @@ class MappingConfig(Section):
     """Pixels sampled per step when mapping the first frame (M3)."""
     iters_first: PositiveInt = 3000
     """Optimisation steps for the first frame."""
+    lr_scale_first: PositiveFloat = 1.0
+    """The first frame's call runs at this times lr_decoders and lr_features."""
     iters: PositiveInt = 200
     """Optimisation steps for every later mapping call."""
     iters_after_fusion: PositiveInt = 150

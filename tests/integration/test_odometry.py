@@ -285,11 +285,13 @@ def test_concurrent_schedule_follows_lockstep(sequence_dir: Path) -> None:
 def test_mapping_the_tracker_waits_for_uses_every_thread(sequence_dir: Path, monkeypatch,
                                                          publish_every: int) -> None:
     """Concurrent schedule with two torch threads: the mapping thread's own share is one.
+    (Also: mapping.lr_scale_first reaches the first call only.)
     The first call, which frame 1 waits for whole, and a re-fit after a server change, which
     the tracker runs itself, use both; so does nothing else. A first call published part way
     leaves the tracker working meanwhile and keeps to one."""
     cfg = load_config("tiny", overrides=[*QUICK, "run.schedule=concurrent",
                                          "run.num_threads=2", "mapping.iters_after_fusion=5",
+                                         "mapping.lr_scale_first=1.5",
                                          f"mapping.first_publish_every={publish_every}"],
                       env={})
     frames, seq = _frames(sequence_dir, cfg.camera.downscale, n=12)
@@ -300,10 +302,12 @@ def test_mapping_the_tracker_waits_for_uses_every_thread(sequence_dir: Path, mon
                                         "cpu")
         tracker_threads = torch.get_num_threads()
         calls: list[tuple[int, int]] = []  # (steps, threads) per optimise call
+        scales: list[float] = []
         optimise = odometry.mapper.optimise
 
         def spy(*args, **kwargs):
             calls.append((args[3], torch.get_num_threads()))
+            scales.append(kwargs.get("lr_scale", 1.0))
             return optimise(*args, **kwargs)
 
         monkeypatch.setattr(odometry.mapper, "optimise", spy)
@@ -321,3 +325,4 @@ def test_mapping_the_tracker_waits_for_uses_every_thread(sequence_dir: Path, mon
     assert calls[0] == (20, 1 if publish_every else 2)
     assert (5, 2) in calls  # the re-fit
     assert all(threads == 1 for steps, threads in calls[1:] if steps != 5), calls
+    assert scales[0] == 1.5 and set(scales[1:]) == {1.0}  # mapping.lr_scale_first: first only

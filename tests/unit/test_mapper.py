@@ -116,6 +116,25 @@ def test_checkpoints_publish_mid_way_and_change_nothing() -> None:
     assert all(torch.equal(a, b) for a, b in zip(finals[0][1], finals[1][1], strict=True))
 
 
+def test_lr_scale_is_the_same_as_scaled_rates() -> None:
+    """optimise(lr_scale=s) runs as a mapper whose two learning rates are s times larger:
+    the same bits; and it changes the result."""
+    rgb, depth = _wall_frame()
+    finals = []
+    for scale, rates in ((1.0, 2.0), (2.0, 1.0), (1.0, 1.0)):
+        point_map, decoders, cnn, _ = _setup()
+        args = mapper_args()
+        mapper = Mapper(SPEC, **{**args, "lr_decoders": rates * args["lr_decoders"],
+                                 "lr_features": rates * args["lr_features"]})
+        mapper.add_points(point_map, decoders, cnn, rgb, depth, INTR, np.eye(4), 0)
+        mapper.optimise(point_map, decoders, [_view(rgb, depth, np.eye(4))], 20, 200,
+                        torch.Generator().manual_seed(0), lr_scale=scale)
+        finals.append(torch.cat([point_map.features.detach().reshape(-1),
+                                 *(p.detach().reshape(-1) for p in decoders.parameters())]))
+    assert torch.equal(finals[0], finals[1])
+    assert not torch.equal(finals[1], finals[2])
+
+
 def test_keyframe_pose_change_moves_anchored_points() -> None:
     point_map, decoders, cnn, mapper = _setup()
     rgb, depth = _wall_frame()
