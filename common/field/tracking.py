@@ -38,10 +38,9 @@ another agent's sub-map, `cpslam.server.loops.refinement`), so it lives with the
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -371,7 +370,7 @@ class Tracker:
                 # guess a degree off, pulls towards the wrong stripe.
                 first = solve_pose_lm(point_map, decoders, u, v, t, depth_obs, None, intr.fx,
                                       intr.fy, intr.cx, intr.cy, T_init,
-                                      dataclasses.replace(settings, iters=depth_iters))
+                                      replace(settings, iters=depth_iters))
                 T_start = first.T_world_cam
             sol = solve_pose_lm(point_map, decoders, u, v, t, depth_obs, gray, intr.fx, intr.fy,
                                 intr.cx, intr.cy, T_start, settings, reference)
