@@ -285,10 +285,10 @@ def test_concurrent_schedule_follows_lockstep(sequence_dir: Path) -> None:
 def test_mapping_the_tracker_waits_for_uses_every_thread(sequence_dir: Path, monkeypatch,
                                                          publish_every: int) -> None:
     """Concurrent schedule with two torch threads: the mapping thread's own share is one.
-    (Also: mapping.lr_scale_first reaches the first call only.)
     The first call, which frame 1 waits for whole, and a re-fit after a server change, which
     the tracker runs itself, use both; so does nothing else. A first call published part way
-    leaves the tracker working meanwhile and keeps to one."""
+    leaves the tracker working meanwhile and keeps to one. mapping.lr_scale_first reaches the
+    first call only."""
     cfg = load_config("tiny", overrides=[*QUICK, "run.schedule=concurrent",
                                          "run.num_threads=2", "mapping.iters_after_fusion=5",
                                          "mapping.lr_scale_first=1.5",
