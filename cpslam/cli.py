@@ -20,6 +20,7 @@ from cpslam.tools.eval.cli import ate as eval_ate
 from cpslam.tools.eval.recon_cli import recon as eval_recon
 from cpslam.tools.eval.render_cli import render as eval_render
 from cpslam.tools.mesh_cli import mesh as mesh_command
+from cpslam.tools.prior import prior as prior_command
 from cpslam.tools.render import render
 from cpslam.tools.report_cli import report as report_command
 from cpslam.tools.secure.cli import init as secure_init
@@ -60,6 +61,7 @@ app.command("render")(render)
 app.command("view")(view)
 app.command("report")(report_command)
 app.command("mesh")(mesh_command)
+app.command("prior")(prior_command)
 app.command("run")(run_command)
 app.command("demo")(demo)
 app.command("status")(server_status)

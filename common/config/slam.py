@@ -111,6 +111,8 @@ class FieldConfig(Section):
     """Near bound D_l (m) for pixels without depth, sampled uniformly in [D_l, far_hi * D_max]."""
     chunk_rays: PositiveInt = 4096
     """Rays rendered per chunk; bounds peak memory of rendering."""
+    prior: str | None = None
+    """Start weights of decoders and feature CNN (.npz; bare name: bundled); null: from run.seed."""
 
     @model_validator(mode="after")
     def _check(self) -> FieldConfig:

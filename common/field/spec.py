@@ -17,6 +17,7 @@ import torch
 
 from cpslam.common.field.decoders import Decoders, FeatureCNN
 from cpslam.common.field.points import NeuralPointMap
+from cpslam.common.field.prior import apply_prior, resolve_prior
 from cpslam.common.field.sampler import RaySampler
 
 __all__ = ["FieldSpec"]
@@ -49,16 +50,21 @@ class FieldSpec:
     far_hi: float
     no_depth_near: float
     chunk_rays: int
+    prior: str | None = None
 
     def decoders(self, seed: int) -> Decoders:
-        """Decoders C, G, U with these widths (C's output: c_out, else its hidden width)."""
-        return Decoders(
+        """Decoders C, G, U with these widths (C's output: c_out, else its hidden width),
+        with the prior's weights if there is one, else random weights from `seed`."""
+        decoders = Decoders(
             feature_dim=self.feature_dim, pe_feature=self.pe_feature_order,
             pe_offset=self.pe_offset_order, c_hidden=self.c_hidden,
             c_out=self.c_out or self.c_hidden, g_hidden=self.g_hidden, u_hidden=self.u_hidden,
             u_layers=self.u_layers, seed=seed, c_layers=self.c_layers, g_layers=self.g_layers,
             leaky_slope=self.leaky_slope,
         )
+        if self.prior is not None:
+            apply_prior(decoders, resolve_prior(self.prior), "decoders")
+        return decoders
 
     def sampler(self, perturb: bool = True, n_near: int | None = None,
                 n_uniform: int | None = None) -> RaySampler:
@@ -77,5 +83,9 @@ class FieldSpec:
                               default_agent=agent_id, device=device)
 
     def cnn(self, seed: int) -> FeatureCNN:
-        """The untrained feature CNN that gives new points their initial features."""
-        return FeatureCNN(feature_dim=self.feature_dim, seed=seed)
+        """The untrained feature CNN that gives new points their initial features (the
+        prior's, whose features its decoders were fitted to, if there is one)."""
+        cnn = FeatureCNN(feature_dim=self.feature_dim, seed=seed)
+        if self.prior is not None:
+            apply_prior(cnn, resolve_prior(self.prior), "cnn")
+        return cnn
