@@ -313,7 +313,20 @@ def _transport(report: dict) -> str:
             + _table(rows) + "\n")
 
 
-RENDERERS = {"odometry": _odometry, "loop_edges": _loop_edges, "collab": _collab,
+def _first_call(report: dict) -> str:
+    rows = [("frame", "setting", "steps", "s", f"depth L1 cm, last {report['window']} steps",
+             f"depth L1 cm per {report['window']} steps")]
+    for r in report["runs"]:
+        rows.append((r["frame"], f"{r['setting']} (`{' '.join(r['overrides']) or 'preset'}`)",
+                     r["steps"], r["seconds"], r["final_l1_cm"],
+                     " ".join(str(v) for v in r["window_l1_cm"])))
+    return (f"The first mapping call on one frame, preset `{report['preset']}`, "
+            f"{report['threads']} torch threads: mean depth error of each step's training "
+            f"rays.\n\n" + _table(rows) + "\n")
+
+
+RENDERERS = {"odometry": _odometry, "first_call": _first_call, "loop_edges": _loop_edges,
+             "collab": _collab,
              "rerun_overhead": _rerun_overhead, "persist": _persist, "flood": _flood,
              "transport": _transport, "bandwidth": _bandwidth, "scale": _scale,
              "faults": _faults, "gpu_check": _gpu_check,
