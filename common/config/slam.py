@@ -120,6 +120,8 @@ class FieldConfig(Section):
             raise ValueError(f"near_lo ({self.near_lo}) must be below near_hi ({self.near_hi})")
         if self.far_hi < self.near_lo:
             raise ValueError(f"far_hi ({self.far_hi}) must not be below near_lo ({self.near_lo})")
+        if self.prior is not None and not self.prior.endswith(".npz"):
+            raise ValueError(f"prior must name an .npz file (or be null), got {self.prior!r}")
         return self
 
     @property

@@ -40,9 +40,9 @@ def resolve_prior(name: str) -> Path:
 
 def save_prior(path: Path, decoders: nn.Module, cnn: nn.Module) -> None:
     """Write the decoders' and the CNN's weights as float32 arrays."""
-    arrays = {f"decoders.{k}": v.detach().cpu().float().numpy()
+    arrays = {f"decoders.{k}": v.detach().float().cpu().numpy()
               for k, v in decoders.state_dict().items()}
-    arrays.update({f"cnn.{k}": v.detach().cpu().float().numpy()
+    arrays.update({f"cnn.{k}": v.detach().float().cpu().numpy()
                    for k, v in cnn.state_dict().items()})
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path, "wb") as f:

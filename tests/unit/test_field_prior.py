@@ -62,10 +62,38 @@ def test_a_missing_or_foreign_file_names_the_field(tmp_path: Path) -> None:
 
 
 def test_the_bundled_cpu_prior_fits_the_cpu_preset() -> None:
-    cpu = field_spec(load_config("cpu", env={}).field)
-    assert cpu.prior == "cpu.npz"
+    cpu = field_spec(load_config("cpu", overrides=["field.prior=cpu.npz"], env={}).field)
     arrays = load_prior(resolve_prior(cpu.prior))
     decoders = cpu.decoders(seed=0)
     for key, value in decoders.state_dict().items():
         assert np.array_equal(value.numpy(), arrays[f"decoders.{key}"])
     assert not _same(decoders, replace(cpu, prior=None).decoders(seed=0))
+
+
+def test_cpslam_prior_fits_the_same_file_twice_and_the_file_loads(tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from cpslam.cli import app
+
+    args = ["prior", "--preset", "tiny", "--scenes", "2", "--num-frames", "3",
+            "--set", "mapping.iters_first=20", "--set", "mapping.iters=5"]
+    first, second = tmp_path / "a.npz", tmp_path / "b.npz"
+    for out in (first, second):
+        result = CliRunner().invoke(app, [*args, str(out)])
+        assert result.exit_code == 0, result.output
+    a, b = load_prior(first), load_prior(second)
+    assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
+    tiny = spec("tiny")
+    fitted = replace(tiny, prior=str(first)).decoders(seed=0)
+    assert not _same(fitted, tiny.decoders(seed=0))  # fitted, not the random start
+    assert _same(replace(tiny, prior=str(first)).cnn(seed=7), tiny.cnn(seed=0))
+    again = CliRunner().invoke(app, [*args, str(first)])
+    assert again.exit_code == 2 and "already exists" in again.output
+    wrong = CliRunner().invoke(app, [*args, str(tmp_path / "p.pt")])
+    assert wrong.exit_code == 2 and "must end in .npz" in wrong.output
+
+
+def test_the_config_refuses_a_prior_that_is_not_an_npz() -> None:
+    with pytest.raises(ValueError, match=r"prior must name an \.npz file"):
+        load_config("tiny", overrides=["field.prior=weights.pt"], env={})
+    assert load_config("cpu", overrides=["field.prior=null"], env={}).field.prior is None
