@@ -79,7 +79,7 @@ def apply_prior(module: nn.Module, path: Path, prefix: str) -> None:
     keys = {k[len(prefix) + 1:] for k in arrays if k.startswith(prefix + ".")}
     if keys != set(own):
         missing, extra = sorted(set(own) - keys), sorted(keys - set(own))
-        raise ValueError(f"field.prior: {path} does not fit these {prefix} (missing "
+        raise ValueError(f"field.prior: {path} does not fit the {prefix} (missing "
                          f"{missing}, unexpected {extra}): it was fitted with other "
                          f"field widths")
     state = {}

@@ -42,7 +42,7 @@ def test_a_prior_of_other_widths_is_refused(tmp_path: Path) -> None:
                                          r"has shape"):
         wider.decoders(seed=0)
     deeper = replace(tiny, u_layers=tiny.u_layers + 1, prior=str(path))
-    with pytest.raises(ValueError, match=r"does not fit these decoders .*missing"):
+    with pytest.raises(ValueError, match=r"does not fit the decoders .*missing"):
         deeper.decoders(seed=0)
 
 
