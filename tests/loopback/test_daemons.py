@@ -144,8 +144,12 @@ def _restart_server_mid_stream(tmp_path: Path, endpoint: str, apartment, daemons
                                         "--frames", "0:90"), tmp_path)
     daemons.extend([first, agent])
 
-    wait_until("keyframes to reach the first server",
-               lambda: agent_field(endpoint, s, "0", "keyframes", 0) >= 4, 300, first, agent)
+    # The server writes its state at most once per persist interval after a keyframe
+    # arrives, so the kill waits for the first snapshot too (a server killed before it has
+    # acknowledged nothing, and there is no state to resume from).
+    wait_until("keyframes to reach the first server and its first snapshot",
+               lambda: agent_field(endpoint, s, "0", "keyframes", 0) >= 4
+               and (first_out / "server_state.pt").is_file(), 300, first, agent)
     first.signal(signal.SIGKILL)
     first.proc.wait(10)
     if keep_state:
