@@ -73,6 +73,7 @@ def main() -> None:
             walls.append(time.perf_counter() - t)
             track_iters.append(result.track_iters)
     n = len(walls)
+    odometry.close()  # a mapping call may still run on its thread
     events = prof.key_averages()
     device_attr = "self_device_time_total" if cuda else "self_cpu_time_total"
 

@@ -211,6 +211,9 @@ def main() -> None:
     clock._charge()
     n = len(frames) - 1
     per_frame = table(clock, n)
+    # The mapping thread may still be in a call: finish it (outside the tables) so the
+    # interpreter does not exit under a running torch op.
+    odometry.close()
 
     report = bench_header("stage_profile", sys.argv)
     report.update(preset=args.preset, overrides=args.set, threads=args.threads, data=path,
