@@ -23,15 +23,10 @@ MIN_FRAMES = 3
 
 
 def scene_specs(n: int, base: int) -> list[dict]:
-    """n synthetic scenes: room loops and apartment walks in turn, every other pair noisy."""
-    specs = []
-    for i in range(n):
-        scene = "room" if i % 2 == 0 else "apartment"
-        noise = (i // 2) % 2 == 1
-        seed = base + i
-        specs.append({"name": f"{scene}-{seed}{'-noise' if noise else ''}", "kind": scene,
-                      "seed": seed, "noise": noise, "loop": scene == "room"})
-    return specs
+    """n synthetic scenes from scene seed `base` (`cpslam.tools.synth.cycle.scene_cycle`)."""
+    from cpslam.tools.synth.cycle import scene_cycle
+
+    return scene_cycle(n, base)
 
 
 def ensure_scene(spec: dict, frames: int) -> Path:

@@ -40,18 +40,17 @@ def fit_prior(out: Path, preset: str, overrides: list[str], scenes: int, scene_b
     from cpslam.common.field.prior import save_prior
     from cpslam.common.logs import progress
     from cpslam.tools.synth import generate
+    from cpslam.tools.synth.cycle import scene_cycle
 
     start = time.perf_counter()
     done = []
     with tempfile.TemporaryDirectory(prefix="cpslam-prior-") as tmp:
         previous: Path | None = None
-        for i in range(scenes):
-            kind = "room" if i % 2 == 0 else "apartment"
-            noise = (i // 2) % 2 == 1
-            seed = scene_base + i
+        for spec in scene_cycle(scenes, scene_base):
+            kind, seed, noise = spec["kind"], spec["seed"], spec["noise"]
             folder = Path(tmp) / f"{kind}-{seed}"
             generate(folder, scene=kind, frames=frames, width=320, height=240, seed=seed,
-                     noise=noise, loop=kind == "room", overwrite=True)
+                     noise=noise, loop=spec["loop"], overwrite=True)
             start_from = f"field.prior={previous}" if previous else "field.prior=null"
             cfg = load_config(preset, overrides=[*overrides, "run.schedule=lockstep",
                                                  start_from], env={})
@@ -63,7 +62,7 @@ def fit_prior(out: Path, preset: str, overrides: list[str], scenes: int, scene_b
                                   disable=not show_progress):
                 odometry.step(seq[index])
             odometry.close()
-            previous = Path(tmp) / f"prior-{i}.npz"
+            previous = Path(tmp) / f"prior-{len(done)}.npz"
             save_prior(previous, odometry.decoders, odometry.cnn)
             done.append({"scene": kind, "seed": seed, "noise": noise, "frames": len(seq)})
             logger.info("prior: fitted on %s %d (%d frames)", kind, seed, len(seq))
