@@ -4,9 +4,9 @@ and from a prior (`field.prior`), printed as a table and written as JSON.
 For each frame (the shared kitchen frames at the preset's camera.downscale, and frame 0 of
 synthetic scenes of bench/odometry_runs.py) and each setting, `Odometry` runs on that one
 frame in lock-step, so its first mapping call is the whole run; the mean absolute depth
-error of every step's training rays (before the step's update) is recorded and reported as
-the mean over windows of `--window` steps. The last window's figure is what the call leaves
-the tracker; lower is a better fit. Depth is what tracking leans on.
+and colour (RGB in [0, 1]) errors of every step's training rays (before the step's update)
+are recorded and reported as the mean over windows of `--window` steps. The last window's
+figures are what the call leaves the tracker; lower is a better fit.
 
 Usage: python bench/first_call.py [--preset cpu] [--kitchen-frames 0 150]
        [--synthetic 200 203] [--setting NAME=k=v,k=v ...] [--threads 2] [--json PATH]
@@ -50,26 +50,38 @@ def fit_one(preset: str, overrides: list[str], frame_spec: dict, threads: int,
         frame.rgb, frame.depth = resize_rgbd(frame.rgb, frame.depth, factor)
     odometry = Odometry.from_config(cfg, seq.intrinsics.scaled(factor), "cpu")
     errors: list[float] = []
-    render = mapper_module.render_rays
+    color_errors: list[float] = []
+    render, batch = mapper_module.render_rays, mapper_module._batch
+    observed: dict = {}
+
+    def batching(*args, **kwargs):
+        rays = batch(*args, **kwargs)
+        observed["color"] = rays[3]
+        return rays
 
     def recording(*args, **kwargs):
         out = render(*args, **kwargs)
         if kwargs.get("features") is not None:  # a step's training rays, not point insertion
             errors.append(float((out["depth"].detach() - args[4]).abs().mean()))
+            color_errors.append(float((out["color"].detach() - observed["color"]).abs().mean()))
         return out
 
-    mapper_module.render_rays = recording
+    mapper_module.render_rays, mapper_module._batch = recording, batching
     try:
         start = time.perf_counter()
         odometry.step(frame)
         seconds = time.perf_counter() - start
     finally:
-        mapper_module.render_rays = render
+        mapper_module.render_rays, mapper_module._batch = render, batch
         odometry.close()
     e = np.asarray(errors) * 100.0
+    c = np.asarray(color_errors)
     windows = [round(float(e[i:i + window].mean()), 3) for i in range(0, len(e), window)]
+    color_windows = [round(float(c[i:i + window].mean()), 4) for i in range(0, len(c), window)]
     return {"steps": len(e), "seconds": round(seconds, 1), "window_l1_cm": windows,
-            "final_l1_cm": windows[-1] if windows else None}
+            "final_l1_cm": windows[-1] if windows else None,
+            "window_color_l1": color_windows,
+            "final_color_l1": color_windows[-1] if color_windows else None}
 
 
 def main() -> None:
@@ -104,7 +116,9 @@ def main() -> None:
                          "overrides": overrides, **result})
             print(f"{frame_spec['name']:<22} {name:<12} {result['steps']:>4} steps "
                   f"{result['seconds']:>6.1f} s  L1 cm per {args.window} steps: "
-                  + " ".join(f"{v:.2f}" for v in result["window_l1_cm"]), flush=True)
+                  + " ".join(f"{v:.2f}" for v in result["window_l1_cm"])
+                  + "  colour L1: " + " ".join(f"{v:.3f}" for v in result["window_color_l1"]),
+                  flush=True)
     report = {**bench_header("first_call", sys.argv), "preset": args.preset,
               "threads": args.threads, "window": args.window, "runs": runs}
     if args.json:

@@ -314,14 +314,19 @@ def _transport(report: dict) -> str:
 
 
 def _first_call(report: dict) -> str:
-    rows = [("frame", "setting", "steps", "s", f"depth L1 cm, last {report['window']} steps",
-             f"depth L1 cm per {report['window']} steps")]
+    window = report["window"]
+    colour = all("final_color_l1" in r for r in report["runs"])  # older files: depth only
+    head = ("frame", "setting", "steps", "s", f"depth L1 cm, last {window} steps",
+            f"depth L1 cm per {window} steps")
+    rows = [head + ((f"colour L1, last {window} steps",) if colour else ())]
     for r in report["runs"]:
-        rows.append((r["frame"], f"{r['setting']} (`{' '.join(r['overrides']) or 'preset'}`)",
-                     r["steps"], r["seconds"], r["final_l1_cm"],
-                     " ".join(str(v) for v in r["window_l1_cm"])))
+        row = (r["frame"], f"{r['setting']} (`{' '.join(r['overrides']) or 'preset'}`)",
+               r["steps"], r["seconds"], r["final_l1_cm"],
+               " ".join(str(v) for v in r["window_l1_cm"]))
+        rows.append(row + ((r["final_color_l1"],) if colour else ()))
+    what = "depth and colour (RGB in [0, 1])" if colour else "depth"
     return (f"The first mapping call on one frame, preset `{report['preset']}`, "
-            f"{report['threads']} torch threads: mean depth error of each step's training "
+            f"{report['threads']} torch threads: mean {what} error of each step's training "
             f"rays.\n\n" + _table(rows) + "\n")
 
 

@@ -141,6 +141,18 @@ def test_collab_table_reads_a_report() -> None:
     assert "| real split | 2.00 / 4.00 (0.50) | 1 / 2 | 1.0 / 2.0 / 3.0 |" in text
 
 
+def test_first_call_table_adds_colour_when_the_report_has_it() -> None:
+    render = _bench_module("render_results")
+    run = {"frame": "kitchen-0", "setting": "a", "overrides": [], "steps": 100,
+           "seconds": 9.5, "final_l1_cm": 1.2, "window_l1_cm": [2.0, 1.2]}
+    report = {"preset": "cpu", "threads": 2, "window": 50, "runs": [run]}
+    old = render._first_call(report)
+    assert "| kitchen-0 | a (`preset`) | 100 | 9.5 | 1.2 | 2.0 1.2 |" in old
+    assert "colour" not in old
+    coloured = render._first_call({**report, "runs": [{**run, "final_color_l1": 0.04}]})
+    assert "| kitchen-0 | a (`preset`) | 100 | 9.5 | 1.2 | 2.0 1.2 | 0.04 |" in coloured
+
+
 def test_odometry_accuracy_over_the_frames_done() -> None:
     """A run stopped by its time budget is scored against as many ground-truth poses."""
     runs = _bench_module("odometry_runs")
