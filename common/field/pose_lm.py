@@ -80,6 +80,7 @@ class LMSettings:
     color_floor: float = 0.01
     reference_weight: float = 0.0
     relinearise_steps: int | None = None
+    line_steps: int = 0
 
 
 @dataclass
@@ -156,6 +157,14 @@ def solve_pose_lm(
                 break
             continue
         T, state, lam = T_new, candidate, max(lam / 10.0, _LAMBDA_MIN)
+        for _ in range(settings.line_steps):  # the model's step fell short: go on along it
+            T_far = T @ se3_exp(dx)
+            far = problem.evaluate(T_far, graph=not chord)
+            xi_far = se3_log(T_prior_inv @ T_far)
+            cost_far = problem.cost(far, scales) + 0.5 * float(prior @ (xi_far * xi_far))
+            if not cost_far < cost_new:
+                break
+            T, state, cost_new = T_far, far, cost_far
         accepted += 1
         refreshed = problem.moved_beyond_search(T)
         if refreshed:

@@ -122,6 +122,8 @@ class Tracker:
             ones reuse them (None: every step; see `cpslam.common.field.pose_lm`).
         depth_iters: "lm" with a colour term only: solves of the depth-only phase before the
             luminance one (None: `iters`); a call with its own `iters` uses those for both.
+        line_steps: "lm" only: after an accepted step, up to this many more of the same size
+            along it, each kept while the cost falls (0: none; see `pose_lm`).
     """
 
     def __init__(
@@ -149,10 +151,13 @@ class Tracker:
         n_uniform: int | None,
         relinearise_steps: int | None,
         depth_iters: int | None,
+        line_steps: int,
         reuse_neighbours: float = 0.01,
     ) -> None:
         if depth_iters is not None and depth_iters < 1:
             raise ValueError(f"Tracker: depth_iters must be >= 1 or None, got {depth_iters}")
+        if line_steps < 0:
+            raise ValueError(f"Tracker: line_steps must be >= 0, got {line_steps}")
         if iters < 1 or n_pixels < 1 or lr <= 0:
             raise ValueError(f"Tracker: need iters >= 1, n_pixels >= 1, lr > 0; got {iters}, "
                              f"{n_pixels}, {lr}")
@@ -189,6 +194,7 @@ class Tracker:
         self.reuse_neighbours = reuse_neighbours
         self.relinearise_steps = relinearise_steps
         self.depth_iters = depth_iters
+        self.line_steps = line_steps
 
     def track(
         self,
@@ -358,7 +364,8 @@ class Tracker:
             var_factor=self.var_factor, k=self.k, radius=self.radius, backend=self.backend,
             chunk=self.chunk, reuse_neighbours=self.reuse_neighbours,
             prior_sigma_t=self.prior_sigma_t, prior_sigma_r=self.prior_sigma_r,
-            reference_weight=self.reference_weight, relinearise_steps=self.relinearise_steps)
+            reference_weight=self.reference_weight, relinearise_steps=self.relinearise_steps,
+            line_steps=self.line_steps)
         intr = self.intrinsics
         gray = None if color_obs is None else color_obs.mean(-1)
         decoders.requires_grad_(False)
