@@ -159,8 +159,8 @@ class TrackingConfig(Section):
     """lm: pixels of the frame compared with the latest keyframe."""
     relinearise_steps: NonNegativeInt | None = None
     """lm: accepted steps that get new Jacobians; later ones reuse them (null: every step)."""
-    line_steps: NonNegativeInt = 0
-    """lm: more steps of an accepted step's size along it, at most, while the cost falls."""
+    step_stretch: float = Field(default=1.0, ge=1.0, le=4.0)
+    """lm: after a step that beat its model 1.5x, try the next this much longer first (1 = off)."""
     depth_iters: PositiveInt | None = None
     """lm with colour: solves of the depth-only phase before the luminance one (null: iters)."""
     n_near: PositiveInt | None = None

@@ -19,7 +19,9 @@ dr/drho = R^T dr/do, dr/dphi = d_cam x (R^T dr/dd).
 
 Steps: solve (H + lambda diag(H)) dx = -g, evaluate the cost at T @ exp(dx) with the same
 pixels, samples, neighbours, mask and scales; accept and shrink lambda if it went down, else
-grow lambda and solve again. The neighbour search is redone at an accepted pose that moved
+grow lambda and solve again. With `step_stretch` s > 1, where the last accepted step lowered
+the cost by more than 1.5 times what the quadratic model predicted (its steps fall short),
+the next step is first tried s times longer, then as solved. The neighbour search is redone at an accepted pose that moved
 its farthest sample by more than `reuse_neighbours`. The mask and scales are re-estimated
 after each of the first three accepted steps and after a new search, then kept: re-weighting
 at every step can cycle between two poses a fraction of a millimetre apart. Converged when a
@@ -56,6 +58,9 @@ _RESCALE_STEPS = 3  # accepted steps after which the mask and robust scales are 
 _REL_TOL = 1e-5  # an accepted step that lowers the cost by less than this share: converged
 _MIN_PIXELS = 12  # fewer kept pixels than this cannot pin six degrees of freedom
 _MISS = 3.0  # normalised error a reference pixel counts as once it leaves the reference view
+# A step is tried stretched when the last accepted one lowered the cost by more than this times
+# what the quadratic model predicted for its step as solved (an exact model gives 1).
+_STRETCH_RHO = 1.5
 
 
 @dataclass(frozen=True)
@@ -80,7 +85,7 @@ class LMSettings:
     color_floor: float = 0.01
     reference_weight: float = 0.0
     relinearise_steps: int | None = None
-    line_steps: int = 0
+    step_stretch: float = 1.0
 
 
 @dataclass
@@ -131,6 +136,7 @@ def solve_pose_lm(
     H = g = None
     jacobians: list[torch.Tensor] | None = None  # of the last linearisation point, when kept
     cost_cur = math.inf
+    rho_last = 0.0  # actual over predicted cost decrease of the last accepted step
     while iters < settings.iters:
         if H is None:  # linearise at the current pose
             xi = se3_log(T_prior_inv @ T)
@@ -143,28 +149,29 @@ def solve_pose_lm(
             dx = -np.linalg.solve(H + lam * np.diag(np.diag(H)), g)
         except np.linalg.LinAlgError:
             break
-        T_new = T @ se3_exp(dx)
         # A candidate that would keep the current Jacobians needs no graph for new ones.
         chord = settings.relinearise_steps is not None \
             and accepted >= settings.relinearise_steps
-        candidate = problem.evaluate(T_new, graph=not chord)
-        xi_new = se3_log(T_prior_inv @ T_new)
-        cost_new = problem.cost(candidate, scales) + 0.5 * float(prior @ (xi_new * xi_new))
+        # Longer first where the last accepted step did much better than the model said.
+        stretches = (settings.step_stretch, 1.0) if rho_last > _STRETCH_RHO \
+            and settings.step_stretch > 1.0 else (1.0,)
+        for stretch in stretches:
+            step = stretch * dx
+            T_new = T @ se3_exp(step)
+            candidate = problem.evaluate(T_new, graph=not chord)
+            xi_new = se3_log(T_prior_inv @ T_new)
+            cost_new = problem.cost(candidate, scales) + 0.5 * float(prior @ (xi_new * xi_new))
+            if cost_new < cost_cur:
+                break
         small = np.linalg.norm(dx[:3]) < settings.tol_t and np.linalg.norm(dx[3:]) < settings.tol_r
         if not cost_new < cost_cur:
             lam *= 10.0
             if lam > _LAMBDA_MAX or small:  # even a tiny step does not help: converged
                 break
             continue
+        predicted = -float(g @ dx + 0.5 * dx @ H @ dx)  # of the step as solved
+        rho_last = (cost_cur - cost_new) / predicted if predicted > 0 else 0.0
         T, state, lam = T_new, candidate, max(lam / 10.0, _LAMBDA_MIN)
-        for _ in range(settings.line_steps):  # the model's step fell short: go on along it
-            T_far = T @ se3_exp(dx)
-            far = problem.evaluate(T_far, graph=not chord)
-            xi_far = se3_log(T_prior_inv @ T_far)
-            cost_far = problem.cost(far, scales) + 0.5 * float(prior @ (xi_far * xi_far))
-            if not cost_far < cost_new:
-                break
-            T, state, cost_new = T_far, far, cost_far
         accepted += 1
         refreshed = problem.moved_beyond_search(T)
         if refreshed:

@@ -122,8 +122,9 @@ class Tracker:
             ones reuse them (None: every step; see `cpslam.common.field.pose_lm`).
         depth_iters: "lm" with a colour term only: solves of the depth-only phase before the
             luminance one (None: `iters`); a call with its own `iters` uses those for both.
-        line_steps: "lm" only: after an accepted step, up to this many more of the same size
-            along it, each kept while the cost falls (0: none; see `pose_lm`).
+        step_stretch: "lm" only: after an accepted step that lowered the cost by more than
+            1.5 times its quadratic model's prediction, the next step is first tried this many
+            times longer and, when that does not lower the cost, as solved (1: off).
     """
 
     def __init__(
@@ -151,13 +152,13 @@ class Tracker:
         n_uniform: int | None,
         relinearise_steps: int | None,
         depth_iters: int | None,
-        line_steps: int,
+        step_stretch: float,
         reuse_neighbours: float = 0.01,
     ) -> None:
         if depth_iters is not None and depth_iters < 1:
             raise ValueError(f"Tracker: depth_iters must be >= 1 or None, got {depth_iters}")
-        if line_steps < 0:
-            raise ValueError(f"Tracker: line_steps must be >= 0, got {line_steps}")
+        if not step_stretch >= 1.0:
+            raise ValueError(f"Tracker: step_stretch must be >= 1, got {step_stretch}")
         if iters < 1 or n_pixels < 1 or lr <= 0:
             raise ValueError(f"Tracker: need iters >= 1, n_pixels >= 1, lr > 0; got {iters}, "
                              f"{n_pixels}, {lr}")
@@ -194,7 +195,7 @@ class Tracker:
         self.reuse_neighbours = reuse_neighbours
         self.relinearise_steps = relinearise_steps
         self.depth_iters = depth_iters
-        self.line_steps = line_steps
+        self.step_stretch = step_stretch
 
     def track(
         self,
@@ -365,7 +366,7 @@ class Tracker:
             chunk=self.chunk, reuse_neighbours=self.reuse_neighbours,
             prior_sigma_t=self.prior_sigma_t, prior_sigma_r=self.prior_sigma_r,
             reference_weight=self.reference_weight, relinearise_steps=self.relinearise_steps,
-            line_steps=self.line_steps)
+            step_stretch=self.step_stretch)
         intr = self.intrinsics
         gray = None if color_obs is None else color_obs.mean(-1)
         decoders.requires_grad_(False)
