@@ -21,17 +21,18 @@ Steps: solve (H + lambda diag(H)) dx = -g, evaluate the cost at T @ exp(dx) with
 pixels, samples, neighbours, mask and scales; accept and shrink lambda if it went down, else
 grow lambda and solve again. With `step_stretch` s > 1, where the last accepted step lowered
 the cost by more than 1.5 times what the quadratic model predicted (its steps fall short),
-the next step is first tried s times longer, then as solved. The neighbour search is redone at an accepted pose that moved
-its farthest sample by more than `reuse_neighbours`. The mask and scales are re-estimated
-after each of the first three accepted steps and after a new search, then kept: re-weighting
-at every step can cycle between two poses a fraction of a millimetre apart. Converged when a
-step moves less than `tol_t` metres and `tol_r` radians (accepted or not) or an accepted one
-lowers the cost by less than a relative 1e-5. With `relinearise_steps` = n, only the first n
-accepted steps (and any that redo the neighbour search) get new Jacobians; later ones keep
-those of the last linearisation point and recompute only the residuals, their robust weights
-and so H and g (chord steps), and their candidates are rendered without the autograd graph.
-The pose then moves by little per step, over which the Jacobians hardly change; the cost that
-accepts or rejects a step is exact either way.
+the next step is first tried s times longer, then as solved. The neighbour search is redone
+at an accepted pose that moved its farthest sample by more than `reuse_neighbours`. The mask
+and scales are re-estimated after each of the first three accepted steps and after a new
+search, then kept: re-weighting at every step can cycle between two poses a fraction of a
+millimetre apart. Converged when a step moves less than `tol_t` metres and `tol_r` radians
+(accepted or not) or an accepted one lowers the cost by less than a relative 1e-5. With
+`relinearise_steps` = n, only the first n accepted steps (and any that redo the neighbour
+search) get new Jacobians; later ones keep those of the last linearisation point and
+recompute only the residuals, their robust weights and so H and g (chord steps), and their
+candidates are rendered without the autograd graph. The pose then moves by little per step,
+over which the Jacobians hardly change; the cost that accepts or rejects a step is exact
+either way.
 
 The solution's information matrix (H at the last linearisation point, 6 x 6, translation
 first, in units of the normalised residuals) says how well each direction is constrained.

@@ -325,25 +325,39 @@ def test_lm_depth_stage_has_its_own_cap(fitted: dict, monkeypatch) -> None:
 
 def test_lm_stretched_steps_go_further_where_the_model_falls_short(fitted: dict) -> None:
     """tracking.step_stretch: a step is tried longer first where the last one beat its model.
-    From 2 cm / 2 degrees off, over eight pixel-draw seeds: MEASURED."""
+    From 2 cm / 2 degrees off, over eight pixel-draw seeds on the AVX-512 and AVX2 code paths:
+    after two solves 0.18-0.90 cm from the truth with stretch 2 against 0.75-1.26 without
+    (means 0.49-0.61 against 0.86-1.01: ratio 0.57-0.60, bound 0.8); solved to the end,
+    0.25-0.45 cm and 0.01-0.14 degrees after 7-9 solves (the exact solver's bounds)."""
     T_true = fitted["T_true"]
     T_init = _off_2cm_2deg(T_true)
-    short = {1.0: [], 2.0: []}
+    after_two: dict[float, list[float]] = {1.0: [], 2.0: []}
     for seed in range(8):
-        for stretch in (1.0, 2.0):
-            t, r = _errors(fitted_track(fitted, _lm(fitted, iters=2, step_stretch=stretch),
-                                        T_init, seed).T_world_cam, T_true)
-            short[stretch].append(t)
+        for stretch in after_two:
+            result = fitted_track(fitted, _lm(fitted, iters=2, step_stretch=stretch), T_init,
+                                  seed)
+            after_two[stretch].append(_errors(result.T_world_cam, T_true)[0])
         result = fitted_track(fitted, _lm(fitted, step_stretch=2.0), T_init, seed)
         t1, r1 = _errors(result.T_world_cam, T_true)
-        print("LINE", seed, [round(x * 100, 3) for x in (short[1.0][-1], short[2.0][-1], t1)],
-              round(r1, 3), result.iters)
         assert t1 < 0.008 and r1 < 0.5, (seed, t1, r1)
-        assert result.iters < 20
-    print("LINE mean", np.mean(short[1.0]) * 100, np.mean(short[2.0]) * 100)
-    assert np.mean(short[2.0]) < np.mean(short[1.0]), short
+        assert result.iters < 20  # it stopped because the pose settled, not at the limit
+    assert np.mean(after_two[2.0]) < 0.8 * np.mean(after_two[1.0]), after_two
     with pytest.raises(ValueError, match="step_stretch"):
         _lm(fitted, step_stretch=0.5)
+
+
+def test_step_stretch_reaches_the_tracker_and_is_bounded() -> None:
+    from cpslam.common.config import load_config
+    from cpslam.common.field_config import tracker_args_from_config
+
+    cfg = load_config("cpu", overrides=["tracking.step_stretch=2"], env={})
+    tracker = Tracker(Intrinsics(64.0, 64.0, 39.5, 29.5, 80, 60), SPEC,
+                      **tracker_args_from_config(cfg.tracking))
+    assert tracker.step_stretch == 2.0
+    assert load_config("cpu", env={}).tracking.step_stretch == 1.0  # off in the preset
+    for bad in ("0.5", "5"):
+        with pytest.raises(ValueError, match="step_stretch"):
+            load_config("cpu", overrides=[f"tracking.step_stretch={bad}"], env={})
 
 
 def test_tracker_samples_per_ray_may_differ_from_mapping() -> None:
