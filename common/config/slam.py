@@ -161,8 +161,6 @@ class TrackingConfig(Section):
     """lm: accepted steps that get new Jacobians; later ones reuse them (null: every step)."""
     step_stretch: float = Field(default=1.0, ge=1.0, le=4.0)
     """lm: after a step that beat its model 1.5x, try the next this much longer first (1 = off)."""
-    jacobians: Literal["render", "image_depth_stage", "image"] = "render"
-    """lm: Jacobians of the rendered terms: autograd through the map, or the frame's gradients."""
     depth_iters: PositiveInt | None = None
     """lm with colour: solves of the depth-only phase before the luminance one (null: iters)."""
     n_near: PositiveInt | None = None

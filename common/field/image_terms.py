@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-__all__ = ["ReferenceImage", "image_residuals", "rendered_jacobians"]
+__all__ = ["ReferenceImage", "image_residuals"]
 
 
 @dataclass
@@ -94,41 +94,6 @@ def image_residuals(
     zero = ~valid[:, None]
     return (r_gray, J_gray.masked_fill(zero, 0.0), r_depth, J_depth.masked_fill(zero, 0.0),
             valid)
-
-
-def rendered_jacobians(
-    rgb: torch.Tensor,
-    depth: torch.Tensor,
-    u: torch.Tensor,
-    v: torch.Tensor,
-    camera: tuple[float, float, float, float],
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Jacobians of a rendered depth and luminance at the pixels u, v [R] (columns, rows)
-    with respect to a right increment xi of the camera pose, from the frame's own images.
-
-    Where the rendered view matches the frame, moving the camera by xi moves the surface point
-    P = D(p) K^-1 p seen at p to P' = exp(xi)^-1 P, seen at p' = pi(P') with depth z(P'); so
-    the rendered images at p change by -grad I . dp'/dxi and dz/dxi - grad D . dp'/dxi. The
-    frame's (smoothed) gradients stand in for the rendered images'. rgb: float [H, W, 3] in
-    [0, 1]; depth: [H, W] metres. Returns J_depth, J_gray [R, 6] float64 on depth's device.
-    """
-    gray = _smooth(rgb.float().mean(-1))
-    grad_gray = _gradient(gray)[:, v, u].double()  # [2, R]
-    grad_depth = _gradient_valid(depth.float())[:, v, u].double()
-    fx, fy, cx, cy = camera
-    z = depth[v, u].double()
-    P = torch.stack(((u.double() - cx) / fx * z, (v.double() - cy) / fy * z, z), dim=-1)
-    dP = torch.zeros(len(P), 3, 6, dtype=torch.float64, device=P.device)
-    dP[:, :, :3] = -torch.eye(3, dtype=torch.float64, device=P.device)
-    dP[:, :, 3:] = _skew(P)
-    d_uv = torch.zeros(len(P), 2, 3, dtype=torch.float64, device=P.device)
-    d_uv[:, 0, 0], d_uv[:, 0, 2] = fx / z, -fx * P[:, 0] / z**2
-    d_uv[:, 1, 1], d_uv[:, 1, 2] = fy / z, -fy * P[:, 1] / z**2
-    J_uv = d_uv @ dP  # [R, 2, 6]
-    J_gray = -(grad_gray[0, :, None] * J_uv[:, 0] + grad_gray[1, :, None] * J_uv[:, 1])
-    J_depth = dP[:, 2] - (grad_depth[0, :, None] * J_uv[:, 0]
-                          + grad_depth[1, :, None] * J_uv[:, 1])
-    return J_depth, J_gray
 
 
 def _bilinear(images: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:

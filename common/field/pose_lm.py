@@ -116,18 +116,14 @@ def solve_pose_lm(
     T_init: np.ndarray,
     settings: LMSettings,
     reference: tuple[ReferenceImage, torch.Tensor, torch.Tensor] | None = None,
-    jacobians: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> LMSolution:
     """Refine T_init [4, 4] for the pixels u, v [R] (columns, rows) with samples t [R, n],
     observed depth [R] and luminance [R] (None without a colour term). The decoders must not
     require gradients (the caller freezes them). reference: (the reference view, the
     frame's points xyz_cam [P, 3] and their luminance [P]) adds the image terms of
-    `cpslam.common.field.image_terms`, weighted by settings.reference_weight. jacobians:
-    (J_depth, J_gray) [R, 6] of the rendered depth and luminance, used at every step instead
-    of the autograd ones (`image_terms.rendered_jacobians`), so that nothing renders with a
-    graph."""
+    `cpslam.common.field.image_terms`, weighted by settings.reference_weight."""
     problem = _Problem(point_map, decoders, u, v, t, depth_obs, gray_obs, (fx, fy, cx, cy),
-                       settings, reference, jacobians)
+                       settings, reference)
     T_init = np.asarray(T_init, dtype=np.float64)
     T_prior_inv = invert(T_init)
     prior = np.array([settings.prior_sigma_t ** -2] * 3 + [settings.prior_sigma_r ** -2] * 3)
@@ -222,8 +218,7 @@ class _Problem:
                  v: torch.Tensor, t: torch.Tensor, depth_obs: torch.Tensor,
                  gray_obs: torch.Tensor | None, camera: tuple[float, float, float, float],
                  settings: LMSettings,
-                 reference: tuple[ReferenceImage, torch.Tensor, torch.Tensor] | None,
-                 jacobians: tuple[torch.Tensor, torch.Tensor] | None = None) -> None:
+                 reference: tuple[ReferenceImage, torch.Tensor, torch.Tensor] | None) -> None:
         fx, fy, cx, cy = camera
         device = point_map.device
         self.point_map, self.decoders, self.s = point_map, decoders, settings
@@ -241,16 +236,11 @@ class _Problem:
         self.render_cache: dict = {}  # what depends only on the neighbours (render_samples)
         self.reference = reference if reference is not None and settings.reference_weight > 0 \
             else None
-        self.fixed_jacobians = None if jacobians is None else \
-            [J.to(device=device, dtype=torch.float64) for J in jacobians]
-        if self.gray_obs is None and self.fixed_jacobians is not None:
-            self.fixed_jacobians = self.fixed_jacobians[:1]
 
     def evaluate(self, T: np.ndarray, refresh: bool = False, graph: bool = True) -> dict:
         """Render at pose T; refresh: redo the neighbour search; graph: keep the autograd graph
         the Jacobians need (a state without it only gives residuals and costs)."""
         device = self.d_cam.device
-        graph = graph and self.fixed_jacobians is None
         R = torch.as_tensor(T[:3, :3], device=device)
         rays_d = (self.d_cam @ R.T).float().requires_grad_(graph)
         rays_o = torch.as_tensor(T[:3, 3], device=device).float().expand_as(rays_d) \
@@ -337,8 +327,6 @@ class _Problem:
         if self.gray_obs is not None:
             kinds.append(("color", state["gray"], state["r_color"], sc.color,
                           self.s.color_weight))
-        if jacobians is None and self.fixed_jacobians is not None:
-            jacobians = self.fixed_jacobians
         if jacobians is None:
             if not state["graph"]:
                 raise RuntimeError("normal_equations: the state was rendered without a graph "

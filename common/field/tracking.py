@@ -47,7 +47,7 @@ import numpy as np
 import torch
 
 from cpslam.common.field.decoders import Decoders
-from cpslam.common.field.image_terms import ReferenceImage, rendered_jacobians
+from cpslam.common.field.image_terms import ReferenceImage
 from cpslam.common.field.points import NeuralPointMap
 from cpslam.common.field.pose_lm import LMSettings, solve_pose_lm
 from cpslam.common.field.renderer import camera_rays, render_samples
@@ -61,7 +61,6 @@ logger = logging.getLogger(__name__)
 
 _PIXEL_SAMPLING = ("uniform", "stratified")
 _METHODS = ("adam", "lm")
-_JACOBIANS = ("render", "image_depth_stage", "image")
 # Fixed scales of `Tracker.score` (m, luminance) and the error a pixel off the map counts as.
 _SCORE_DEPTH, _SCORE_COLOR, _SCORE_MISS = 0.02, 0.05, 3.0
 
@@ -126,9 +125,6 @@ class Tracker:
         step_stretch: "lm" only: after an accepted step that lowered the cost by more than
             1.5 times its quadratic model's prediction, the next step is first tried this many
             times longer and, when that does not lower the cost, as solved (1: off).
-        jacobians: "lm" only: the rendered terms' Jacobians by autograd through the map
-            ("render") or from the frame's image gradients ("image", no backward pass; see
-            `cpslam.common.field.image_terms.rendered_jacobians`).
     """
 
     def __init__(
@@ -157,7 +153,6 @@ class Tracker:
         relinearise_steps: int | None,
         depth_iters: int | None,
         step_stretch: float,
-        jacobians: str,
         reuse_neighbours: float = 0.01,
     ) -> None:
         if depth_iters is not None and depth_iters < 1:
@@ -175,9 +170,6 @@ class Tracker:
         if pixel_sampling not in _PIXEL_SAMPLING:
             raise ValueError(f"Tracker: pixel_sampling must be one of {_PIXEL_SAMPLING}, got "
                              f"{pixel_sampling!r}")
-        if jacobians not in _JACOBIANS:
-            raise ValueError(f"Tracker: jacobians must be one of {_JACOBIANS}, got "
-                             f"{jacobians!r}")
         if method not in _METHODS:
             raise ValueError(f"Tracker: method must be one of {_METHODS}, got {method!r}")
         if not (prior_sigma_t > 0 and prior_sigma_r > 0):
@@ -204,7 +196,6 @@ class Tracker:
         self.relinearise_steps = relinearise_steps
         self.depth_iters = depth_iters
         self.step_stretch = step_stretch
-        self.jacobians = jacobians
 
     def track(
         self,
@@ -242,13 +233,8 @@ class Tracker:
             terms = None
             if reference is not None and self.reference_weight > 0:
                 terms = self._reference_points(rgb, depth, generator, reference)
-            jacobians = None
-            if self.jacobians != "render":
-                intr = self.intrinsics
-                jacobians = rendered_jacobians(rgb, depth, u, v,
-                                               (intr.fx, intr.fy, intr.cx, intr.cy))
             return self._track_lm(point_map, decoders, u, v, t, depth_obs, color_obs, T_init,
-                                  iters, depth_iters, terms, jacobians)
+                                  iters, depth_iters, terms)
         t_far = float(t.max())
         index = point_map.neighbour_index(self.backend)
         features = point_map.features.detach()  # the map is fixed: no feature gradients
@@ -373,8 +359,7 @@ class Tracker:
     def _track_lm(self, point_map: NeuralPointMap, decoders: Decoders, u: torch.Tensor,
                   v: torch.Tensor, t: torch.Tensor, depth_obs: torch.Tensor,
                   color_obs: torch.Tensor | None, T_init: np.ndarray, iters: int,
-                  depth_iters: int, reference: tuple | None = None,
-                  jacobians: tuple[torch.Tensor, torch.Tensor] | None = None) -> TrackResult:
+                  depth_iters: int, reference: tuple | None = None) -> TrackResult:
         settings = LMSettings(
             iters=iters, color_weight=self.color_weight, err_hi=self.err_hi,
             var_factor=self.var_factor, k=self.k, radius=self.radius, backend=self.backend,
@@ -393,12 +378,10 @@ class Tracker:
                 # guess a degree off, pulls towards the wrong stripe.
                 first = solve_pose_lm(point_map, decoders, u, v, t, depth_obs, None, intr.fx,
                                       intr.fy, intr.cx, intr.cy, T_init,
-                                      replace(settings, iters=depth_iters),
-                                      jacobians=jacobians)
+                                      replace(settings, iters=depth_iters))
                 T_start = first.T_world_cam
             sol = solve_pose_lm(point_map, decoders, u, v, t, depth_obs, gray, intr.fx, intr.fy,
-                                intr.cx, intr.cy, T_start, settings, reference,
-                                jacobians if self.jacobians == "image" else None)
+                                intr.cx, intr.cy, T_start, settings, reference)
         finally:
             decoders.requires_grad_(True)
         loss = sol.costs[-1] if sol.costs else math.nan
