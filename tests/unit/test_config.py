@@ -145,7 +145,7 @@ def test_source_order_preset_file_env_set(tmp_path: Path) -> None:
     file = tmp_path / "c.yaml"
     file.write_text("tracking:\n  iters: 40\n  n_pixels: 41\n")
     env = {"CPSLAM_TRACKING__ITERS": "50", "CPSLAM_TRACKING__LR": "0.01"}
-    assert load_config("cpu", env={}).tracking.iters == 6  # the preset's own value
+    assert load_config("cpu", env={}).tracking.iters == 4  # the preset's own value
     assert load_config("cpu", file, env={}).tracking.iters == 40
     assert load_config("cpu", file, env=env).tracking.iters == 50
     cfg = load_config("cpu", file, ["tracking.iters=60"], env=env)

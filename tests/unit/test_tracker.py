@@ -350,11 +350,12 @@ def test_step_stretch_reaches_the_tracker_and_is_bounded() -> None:
     from cpslam.common.config import load_config
     from cpslam.common.field_config import tracker_args_from_config
 
-    cfg = load_config("cpu", overrides=["tracking.step_stretch=2"], env={})
+    cfg = load_config("cpu", overrides=["tracking.step_stretch=3"], env={})
     tracker = Tracker(Intrinsics(64.0, 64.0, 39.5, 29.5, 80, 60), SPEC,
                       **tracker_args_from_config(cfg.tracking))
-    assert tracker.step_stretch == 2.0
-    assert load_config("cpu", env={}).tracking.step_stretch == 1.0  # off in the preset
+    assert tracker.step_stretch == 3.0
+    assert load_config("cpu", env={}).tracking.step_stretch == 2.0  # the preset's
+    assert load_config("gpu", env={}).tracking.step_stretch == 1.0  # off
     for bad in ("0.5", "5"):
         with pytest.raises(ValueError, match="step_stretch"):
             load_config("cpu", overrides=[f"tracking.step_stretch={bad}"], env={})
