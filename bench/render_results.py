@@ -78,7 +78,7 @@ def _provenance(report: dict) -> str:
 
 def _odometry(report: dict) -> str:
     s = report["summary"]
-    out = []
+    out = [f"{report['note']}\n"] if report.get("note") else []
     synth = s.get("synthetic")
     if synth:
         out.append(f"Synthetic: {synth['runs']} runs, origin ATE mean **{synth['mean_origin_cm']} "

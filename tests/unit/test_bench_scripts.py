@@ -92,6 +92,8 @@ def test_odometry_bench_puts_loop_closure_beside_the_odometry(
     assert "runs without loop closure" in text
     plain = render._odometry({**report, "runs": runs[:1], "summary": old})
     assert "with loops" not in plain and "| room-0 | origin | 1 | 2.0 |" in plain
+    assert render._odometry({**report, "note": "Ran beside the test suite."}).startswith(
+        "Ran beside the test suite.\n")  # a report's note leads its section
 
 
 def test_odometry_bench_scenes_alternate_kind_and_noise() -> None:
