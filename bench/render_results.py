@@ -157,6 +157,14 @@ def _loop_edges(report: dict) -> str:
     note = ("\nOpen3D's RGB-D odometry chained between the frames of the same pairs "
             "(translation median / p90 / max against the same ground truth): "
             + "; ".join(spans) + ".\n") if spans else ""
+    fits = [f"{key}: {f['registered_fits_better']} of {f['pairs']} pairs, point-to-plane RMS "
+            f"median {f['rmse_mm_median']['registered']} mm registered against "
+            f"{f['rmse_mm_median']['ground_truth']} at the ground truth, colour agreement "
+            f"{f['color_median']['registered']} against {f['color_median']['ground_truth']}"
+            for key, s in report["summary"].items() if (f := s.get("truth_fit"))]
+    if fits:
+        note += ("\nThe two views fit together better at the registered pose than at the "
+                 "ground-truth pose in " + "; ".join(fits) + ".\n")
     return (f"`loop.information_scale` {report['information_scale']}.\n\n" + _table(rows)
             + "\n" + note)
 

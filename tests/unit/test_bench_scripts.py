@@ -132,6 +132,27 @@ def test_results_page_is_rendered_from_the_committed_json() -> None:
         "docs/results.md is stale: python bench/render_results.py"
 
 
+def test_loop_edges_bench_says_where_the_ground_truth_fits_worse() -> None:
+    """Real pairs carry how well the views fit at the ground truth and at the registered
+    pose; the summary counts the pairs the registration fits better and the page says so."""
+    bench, render = _bench_module("loop_edges"), _bench_module("render_results")
+    seq = {"real": True, "size": "320x240", "pairs": 3, "accepted": 3,
+           "errors": [[0, 45, 1.0, 0.1, 0.9], [0, 75, 2.0, 0.2, 0.8], [30, 75, 3.0, 0.3, 0.7]],
+           "chi2_raw": [1.0, 2.0, 3.0],
+           "truth_fit": [[0, 45, 12.0, 11.0, 0.8, 0.9], [0, 75, 17.0, 18.0, 0.8, 0.8],
+                         [30, 75, 21.0, 16.0, 0.7, 0.75]]}
+    summary = bench.summarise({"kitchen@1": seq}, 1.0)
+    assert summary["real@320x240"]["truth_fit"] == {
+        "pairs": 3, "registered_fits_better": 2,
+        "rmse_mm_median": {"ground_truth": 17.0, "registered": 16.0},
+        "color_median": {"ground_truth": 0.8, "registered": 0.8}}
+    text = render._loop_edges({"information_scale": 1.0, "summary": summary})
+    assert "ground-truth pose in real@320x240: 2 of 3 pairs, point-to-plane RMS median " \
+        "16.0 mm registered against 17.0 at the ground truth" in text
+    synthetic = bench.summarise({"room@1": {**seq, "real": False, "truth_fit": []}}, 1.0)
+    assert "truth_fit" not in synthetic["synthetic@320x240"]
+
+
 def test_collab_table_reads_a_report() -> None:
     render = _bench_module("render_results")
     edges = {"edges": [{"trans_cm": 1.0}], "trans_cm_median": 1.0, "trans_cm_p90": 2.0,
