@@ -361,7 +361,8 @@ class Odometry:
             return result, ""
         outcome = self.recovery.recover(
             self.tracker, state.point_map, state.decoders, current, result, reason, guesses,
-            self._last_tracked, guesses["zero_motion"], self.intrinsics, self.keyframes, seed)
+            self._last_tracked, guesses["zero_motion"], self.intrinsics, self.keyframes, seed,
+            reference)
         return outcome.result, outcome.event
 
     def _run_job(self, job: MapJob, state: MapState,

@@ -39,6 +39,7 @@ if TYPE_CHECKING:
     from cpslam.common.camera import Intrinsics
     from cpslam.common.config import RecoveryConfig
     from cpslam.common.field import Decoders, NeuralPointMap
+    from cpslam.common.field.image_terms import ReferenceImage
     from cpslam.common.field.tracking import Tracker, TrackResult
 
 logger = logging.getLogger(__name__)
@@ -150,9 +151,12 @@ class Recovery:
         intrinsics: Intrinsics,
         keyframes: KeyframeStore | None,
         generator_seed: int,
+        reference: ReferenceImage | None = None,
     ) -> RecoveryOutcome:
         """Re-track a suspect frame from other guesses (``guesses``: name -> T_world_cam,
-        the one it was tracked from included), then from keyframes; the best outcome."""
+        the one it was tracked from included), then from keyframes; the best outcome. Every
+        re-track has the loss the frame was tracked with (``reference``: the keyframe view
+        tracking compared it with, if any)."""
         self.counts["suspect"] += 1
         guesses = dict(guesses)
         if self.geometric_guess and previous is not None and T_previous is not None:
@@ -160,15 +164,15 @@ class Recovery:
             if T_prev_cur is not None:
                 guesses["rgbd_odometry"] = T_previous @ T_prev_cur
         T_predicted = guesses.get("constant_velocity", guesses.get("zero_motion"))
-        candidates = [("tracked", first)] + self._track_all(tracker, point_map, decoders,
-                                                            frame, guesses, generator_seed)
+        candidates = [("tracked", first)] + self._track_all(
+            tracker, point_map, decoders, frame, guesses, generator_seed, reference)
         best_name, best = self._best(tracker, point_map, decoders, frame, candidates,
                                      generator_seed)
         healthy = not self._still_suspect(best, T_predicted, guesses.get("rgbd_odometry"))
         if not healthy and self.relocalise and keyframes is not None and len(keyframes):
             relocated = self._track_all(tracker, point_map, decoders, frame,
                                         _keyframe_guesses(frame, keyframes, intrinsics),
-                                        generator_seed)
+                                        generator_seed, reference)
             if relocated:
                 best_name, best = self._best(tracker, point_map, decoders, frame,
                                              [(best_name, best), *relocated], generator_seed)
@@ -185,13 +189,14 @@ class Recovery:
         return RecoveryOutcome(best, event, best_name, reason)
 
     def _track_all(self, tracker: Tracker, point_map: NeuralPointMap, decoders: Decoders,
-                   frame: Frame, guesses: dict[str, np.ndarray], seed: int
-                   ) -> list[tuple[str, TrackResult]]:
+                   frame: Frame, guesses: dict[str, np.ndarray], seed: int,
+                   reference: ReferenceImage | None) -> list[tuple[str, TrackResult]]:
         out = []
         for name, T in guesses.items():
             gen = torch.Generator(device="cpu").manual_seed(seed)
             out.append((name, tracker.track(point_map, decoders, frame.rgb_t, frame.depth_t, T,
-                                            gen, iters=self.retrack_iters)))
+                                            gen, iters=self.retrack_iters,
+                                            reference=reference)))
         return out
 
     @staticmethod

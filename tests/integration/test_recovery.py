@@ -93,14 +93,15 @@ def candidates(monkeypatch: pytest.MonkeyPatch) -> dict[str, np.ndarray]:
 @pytest.mark.slow
 def test_a_bad_guess_is_detected_and_recovered(prefix: dict,
                                                candidates: dict[str, np.ndarray]) -> None:
-    """Recovered means: the pose kept is one the re-tracking reached from a good guess, and
-    the good guesses (motion model, RGB-D odometry, keyframes) all reached the same pose. The
-    bad guess is 19 cm off; tracked from it, the frame ends more than 5 cm away.
+    """Recovered means: the pose kept is one the re-tracking reached from a good guess, the
+    good guesses (motion model, RGB-D odometry, keyframes) all reached one pose, and that is
+    where tracking from a good guess ends. The bad guess is 19 cm off; tracked from it, the
+    frame ends more than 5 cm away.
 
-    The re-tracking runs `recovery.iters_factor` times the steps without the keyframe's
-    reference image, so it converges apart from the clean run's tracking, by 5-17 mm on this
-    short map (measured on AVX2 and AVX-512 code paths with one and two torch threads); the
-    candidates from good guesses agree with each other to within 6 mm on all of them."""
+    With the loss tracking has (the keyframe's reference terms included), the candidates
+    from good guesses agreed to within 0.8 mm and the recovered pose lay within 0.6 mm of
+    the clean run's (AVX2 and default code paths, one and two torch threads). Without the
+    reference terms, the re-tracking had converged 5-17 mm from the clean run's pose."""
     _, clean = _continue(prefix, "recovery.enabled=true")
     assert all(r.track_event == "" for r in clean)
     reference = clean[0].T_world_cam
@@ -110,11 +111,11 @@ def test_a_bad_guess_is_detected_and_recovered(prefix: dict,
     odometry, spoiled = _continue(prefix, "recovery.enabled=true", spoil="init")
     assert spoiled[0].track_event == "recovered"
     good = [candidates[k] for k in ("zero_motion", "constant_velocity", "rgbd_odometry")]
-    assert _spread(good) < 0.015  # three guesses, one pose
+    assert _spread(good) < 0.005  # three guesses, one pose
     recovered = spoiled[0].T_world_cam
     assert min(_distance(recovered, T) for T in good) < 1e-9  # the pose of a good guess
     assert min(_distance(misled, T) for T in good) > 0.05
-    assert _distance(recovered, reference) < 0.03  # and tracking's pose, within the above
+    assert _distance(recovered, reference) < 0.005  # and tracking's pose
     assert odometry.tracking_events() == {"suspect": 1, "recovered": 1, "lost": 0}
     metrics = frame_metrics(odometry, spoiled, 1.0, False, "cpu")
     assert metrics["tracking_events"] == {"suspect": 1, "recovered": 1, "lost": 0}
@@ -125,7 +126,7 @@ def test_a_bad_guess_is_detected_and_recovered(prefix: dict,
     _, spoiled = _continue(prefix, "recovery.enabled=true", spoil="all")
     assert spoiled[0].track_event == "recovered"
     relocated = [T for k, T in candidates.items() if k.startswith("keyframe ")]
-    assert relocated and _spread(relocated + good) < 0.015  # where the good guesses led
+    assert relocated and _spread(relocated + good) < 0.005  # where the good guesses led
     assert min(_distance(spoiled[0].T_world_cam, T) for T in relocated) < 1e-9
 
 
