@@ -11,9 +11,10 @@ to it and every later frame follows. Each tracked frame is therefore checked (`c
   from the motion model's prediction (a hand-held camera at 30 Hz does not jump).
 
 A suspect frame is tracked again (`Recovery.recover`) from each other guess, with
-`iters_factor` times the steps: the previous pose (zero motion), the constant-velocity
-prediction, and a frame-to-frame RGB-D odometry estimate from the previous frame (Open3D's
-multi-scale hybrid odometry, when open3d is installed). Every result, the first included, is
+`iters_factor` times the steps and the loss tracking has (the keyframe reference terms
+included): the previous pose (zero motion), the constant-velocity prediction, and a
+frame-to-frame RGB-D odometry estimate from the previous frame (Open3D's multi-scale hybrid
+odometry, when open3d is installed). Every result, the first included, is
 scored on one common set of pixels (`Tracker.score`) and the best is kept. If it is still
 suspect, the frame is registered against the latest keyframes (`register_rgbd` on their
 full-size images) and tracked from each pose that verifies. A frame that is still suspect is
