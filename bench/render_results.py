@@ -62,7 +62,8 @@ def render(paths: list[Path]) -> str:
         render_one = RENDERERS.get(report.get("bench"))
         if render_one is None:
             continue
-        parts.append(f"## {path.stem}\n\n{_provenance(report)}\n\n{render_one(report)}")
+        note = f"{report['note']}\n\n" if report.get("note") else ""
+        parts.append(f"## {path.stem}\n\n{_provenance(report)}\n\n{note}{render_one(report)}")
     return "\n".join(parts).rstrip() + "\n"
 
 
@@ -78,7 +79,7 @@ def _provenance(report: dict) -> str:
 
 def _odometry(report: dict) -> str:
     s = report["summary"]
-    out = [f"{report['note']}\n"] if report.get("note") else []
+    out = []
     synth = s.get("synthetic")
     if synth:
         out.append(f"Synthetic: {synth['runs']} runs, origin ATE mean **{synth['mean_origin_cm']} "

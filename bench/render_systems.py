@@ -119,10 +119,9 @@ def _gpu_check(report: dict) -> str:
             "status")
     rows = [cols] + [tuple("-" if r.get(c) is None else r[c] for c in cols)
                      for r in report["table"]]
-    note = f"\n\n{report['note']}" if report.get("note") else ""
     return ("The odometry front end (`bench/odometry.py --loops off`, one run per preset and "
             "sequence, each within its own time budget: frames done of those asked) on CUDA, "
-            "beside the CP-SLAM paper's RTX 3090 figures (docs/gpu.md)." + note + "\n\n"
+            "beside the CP-SLAM paper's RTX 3090 figures (docs/gpu.md).\n\n"
             + _table(rows) + "\n")
 
 
@@ -136,13 +135,12 @@ def _gpu_profile(report: dict) -> str:
             f"{report['device_ms_per_frame']:.0f} ms device time (self, all operators), "
             f"{report['kernel_launches_per_frame']:.0f} kernel launches, host waits "
             + ", ".join(f"`{k}` {v:.0f}" for k, v in waits.items()) + " per frame.")
-    note = f" {report['note']}" if report.get("note") else ""
     rows = [("operator (top 10 by device time)", "calls / frame", "host ms / frame",
              "device ms / frame")]
     rows += [(r["op"][:70], round(r["calls_per_frame"], 1),
               round(r["self_host_ms_per_frame"], 2), round(r["self_device_ms_per_frame"], 2))
              for r in report["by_device_time"][:10]]
-    return head + note + "\n\n" + _table(rows) + "\n"
+    return head + "\n\n" + _table(rows) + "\n"
 
 
 def _pose_graph_cost(report: dict) -> str:

@@ -3,6 +3,7 @@ odometry bench's seed summary is what its table reads."""
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -92,8 +93,24 @@ def test_odometry_bench_puts_loop_closure_beside_the_odometry(
     assert "runs without loop closure" in text
     plain = render._odometry({**report, "runs": runs[:1], "summary": old})
     assert "with loops" not in plain and "| room-0 | origin | 1 | 2.0 |" in plain
-    assert render._odometry({**report, "note": "Ran beside the test suite."}).startswith(
-        "Ran beside the test suite.\n")  # a report's note leads its section
+
+
+@pytest.mark.parametrize("bench_name", ["odometry", "loop_edges", "gpu_check"])
+def test_a_reports_note_leads_its_section_whatever_the_bench(tmp_path: Path,
+                                                            bench_name: str) -> None:
+    render = _bench_module("render_results")
+    committed = sorted((BENCH / "results").glob("*.json"))
+    report = next(r for r in (json.loads(p.read_text()) for p in committed)
+                  if r.get("bench") == bench_name)
+    path = tmp_path / "with-note.json"
+    path.write_text(json.dumps({**report, "note": "Ran beside the test suite."}))
+    section = render.render([path]).split("## with-note\n\n", 1)[1]
+    provenance, note, body = section.split("\n\n", 2)
+    assert provenance.startswith("`") and note == "Ran beside the test suite."
+    assert "Ran beside the test suite." not in body  # rendered once, not again by the bench
+    report.pop("note", None)
+    path.write_text(json.dumps(report))
+    assert "Ran beside" not in render.render([path])
 
 
 def test_odometry_bench_scenes_alternate_kind_and_noise() -> None:
