@@ -96,7 +96,7 @@ def test_odometry_bench_puts_loop_closure_beside_the_odometry(
 
 
 @pytest.mark.parametrize("bench_name", ["odometry", "loop_edges", "gpu_check"])
-def test_a_reports_note_leads_its_section_whatever_the_bench(tmp_path: Path,
+def test_a_reports_note_follows_its_provenance_whatever_the_bench(tmp_path: Path,
                                                             bench_name: str) -> None:
     render = _bench_module("render_results")
     committed = sorted((BENCH / "results").glob("*.json"))
