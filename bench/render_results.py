@@ -97,12 +97,17 @@ def _odometry(report: dict) -> str:
     # Reports from before the loop-closure runs have no with_loops: their table is unchanged.
     loops = any("with_loops" in e for e in s["per_sequence"].values())
     extra = ("with loops mean / worst cm", "loops accepted / found") if loops else ()
+    # Reports from before the time ratio have none: their table is unchanged.
+    timed = any("s_per_frame_over_open3d_full" in e for e in s["per_sequence"].values())
+    extra = (("s/frame over Open3D's at full size",) if timed else ()) + extra
     rows = [("sequence", "ATE", "runs", "mean cm", "worst cm", "lost runs",
              "Open3D cm", "ratio mean / worst", "pieces ratio", "s/frame", *extra)]
     for name, e in s["per_sequence"].items():
         lp = e.get("with_loops")
         cells = ((f"{lp['mean']} / {lp['worst']}", f"{lp['loops_accepted']} / "
                   f"{lp['loops_found']}") if lp else ("-", "-")) if loops else ()
+        if timed:
+            cells = (e.get("s_per_frame_over_open3d_full", "-"), *cells)
         if "mean" not in e:
             rows.append((name, "-" if lp else "error", "", "", "", "", "", "", "", "", *cells))
             continue

@@ -37,7 +37,8 @@ def test_odometry_bench_summarises_runs(capsys: pytest.CaptureFixture[str]) -> N
     bench = _bench_module("odometry")
     base = {"kind": "room", "threads": 1, "capability": "default", "seed": 0,
             "ate_se3_cm": 0.5, "rpe1_mm": 1.0, "rpe1_deg": 0.1, "s_per_frame": 1.0,
-            "tracking_s_per_frame": 0.5, "mapping_s_per_call": 3.0}
+            "tracking_s_per_frame": 0.5, "mapping_s_per_call": 3.0,
+            "s_per_frame_after_first": 0.9}
     runs = [{**base, "sequence": "room-0", "ate_origin_cm": 0.8, "max_error_cm": 2.0,
              "events": {"suspect": 2, "recovered": 2, "lost": 0}},
             {**base, "sequence": "room-0", "threads": 2, "ate_origin_cm": 1.2,
@@ -46,8 +47,10 @@ def test_odometry_bench_summarises_runs(capsys: pytest.CaptureFixture[str]) -> N
              "ate_se3_pieces_cm": 1.5, "max_error_cm": 5.0},
             {"sequence": "kitchen", "threads": 2, "capability": "avx2", "seed": 0,
              "error": "boom"}]
-    open3d = {"kitchen": {"320x240": {"ate_se3_cm": 2.5, "ate_se3_pieces_cm": 2.0},
-                          "640x480": {"ate_se3_cm": 4.0, "ate_se3_pieces_cm": 3.0}}}
+    open3d = {"kitchen": {"320x240": {"ate_se3_cm": 2.5, "ate_se3_pieces_cm": 2.0,
+                                      "s_per_frame": 0.1},
+                          "640x480": {"ate_se3_cm": 4.0, "ate_se3_pieces_cm": 3.0,
+                                      "s_per_frame": 0.4}}}
     summary = bench.summarise(runs, open3d)
     room = summary["per_sequence"]["room-0"]
     assert room["mean"] == 1.0 and room["worst"] == 1.2 and room["lost_runs"] == 1
@@ -55,10 +58,18 @@ def test_odometry_bench_summarises_runs(capsys: pytest.CaptureFixture[str]) -> N
     kitchen = summary["per_sequence"]["kitchen"]
     assert kitchen["ratio_mean_over_best_open3d"] == 0.8  # against the better Open3D
     assert kitchen["ratio_pieces_mean_over_best_open3d"] == 0.75
+    # Time against Open3D at the frames' full size (640x480), not the faster half size.
+    assert kitchen["s_per_frame_over_open3d_full"] == 2.5
+    assert "s_per_frame_over_open3d_full" not in room  # no Open3D run on it
     assert summary["synthetic"]["runs_over_1cm"] == 1 and summary["failed_runs"] == 1
     bench.print_tables({"runs": runs, "summary": summary, "open3d": open3d})
     out = capsys.readouterr().out
-    assert "error" in out and "1 lost track" in out
+    assert "error" in out and "1 lost track" in out and "s/frame / Open3D full" in out
+    text = _bench_module("render_results")._odometry(
+        {"runs": runs, "summary": summary, "open3d": open3d, "preset": "cpu", "overrides": []})
+    assert "| s/frame over Open3D's at full size |" in text
+    assert "| 0.8 / 0.8 | 0.75 | 1.0 | 2.5 |" in text  # the kitchen row
+    assert "| 1.0 | - |" in text  # room-0: no Open3D, no ratio
 
 
 def test_odometry_bench_puts_loop_closure_beside_the_odometry(
