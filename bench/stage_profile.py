@@ -12,6 +12,10 @@ CPU time (time.process_time: every torch thread counts) to stages:
   decoder forward, backward, optimiser step and the rest;
 - other: keyframes and whatever the odometry does between the two.
 
+The odometry runs in lock-step (`run.schedule=lockstep`, whatever the preset or `--set` say),
+so that tracking and mapping take turns on the process's threads and each stage's time is
+its own.
+
 Each stage gets its exclusive time: a nested stage's time is charged to it, not to the
 stage around it. The stages come from wrapping the functions that do the work for the
 duration of the run (nothing in the library changes, and nothing costs anything when this
@@ -190,8 +194,10 @@ def main() -> None:
     from cpslam.common.config import load_config
     from cpslam.common.device import configure_torch
 
-    cfg = load_config(args.preset, overrides=[f"run.num_threads={args.threads}", *args.set],
-                      env={})
+    # Lock-step whatever the preset says: the stage clock is one stack, and a mapping thread
+    # beside the tracker would charge its stages to the tracker's and the other way round.
+    cfg = load_config(args.preset, overrides=[f"run.num_threads={args.threads}", *args.set,
+                                              "run.schedule=lockstep"], env={})
     configure_torch(cfg.run.num_threads, cfg.run.deterministic, 1)
     path, intrinsics, frames = open_frames(args, cfg)
     odometry = Odometry.from_config(cfg, intrinsics, "cpu")
