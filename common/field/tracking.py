@@ -71,10 +71,11 @@ __all__ = ["TrackResult", "Tracker", "outlier_mask", "sample_pixels"]
 class TrackResult:
     """Outcome of tracking one frame.
 
-    T_world_cam: [4, 4] float64 the chosen pose; iters: optimisation steps run; loss: the
-    loss at the chosen pose (best or last evaluated; "lm": robust cost per kept pixel);
-    best_iter: step whose pose was chosen; losses: loss of every step (at the pose before
-    that step's update; "lm": at every linearisation point); inlier_ratio: share of the drawn
+    T_world_cam: [4, 4] float64 the chosen pose; iters: optimisation steps run ("lm": the
+    solves of both phases); loss: the loss at the chosen pose (best or last evaluated; "lm":
+    robust cost per kept pixel); best_iter: step whose pose was chosen; losses: loss of every
+    step (at the pose before that step's update; "lm": at every linearisation point of the
+    last phase); inlier_ratio: share of the drawn
     pixels the loss kept at the chosen pose; residual_m: median absolute depth error (m) of
     the pixels whose rays reach the map, at the chosen pose; information: [6, 6]
     Gauss-Newton information of the pose increment (translation first, "lm" only, else None).
@@ -371,7 +372,7 @@ class Tracker:
         gray = None if color_obs is None else color_obs.mean(-1)
         decoders.requires_grad_(False)
         try:
-            T_start = T_init
+            T_start, depth_solves = T_init, 0
             if gray is not None:
                 # Depth first: its basin is wide (a rendered surface moves smoothly with the
                 # pose), while luminance is periodic on striped or tiled texture and, from a
@@ -379,13 +380,15 @@ class Tracker:
                 first = solve_pose_lm(point_map, decoders, u, v, t, depth_obs, None, intr.fx,
                                       intr.fy, intr.cx, intr.cy, T_init,
                                       replace(settings, iters=depth_iters))
-                T_start = first.T_world_cam
+                T_start, depth_solves = first.T_world_cam, first.iters
             sol = solve_pose_lm(point_map, decoders, u, v, t, depth_obs, gray, intr.fx, intr.fy,
                                 intr.cx, intr.cy, T_start, settings, reference)
         finally:
             decoders.requires_grad_(True)
         loss = sol.costs[-1] if sol.costs else math.nan
-        return TrackResult(sol.T_world_cam, sol.iters, loss, sol.iters, sol.costs,
+        # Both phases' solves: the depth phase's cost as much as the others.
+        solves = depth_solves + sol.iters
+        return TrackResult(sol.T_world_cam, solves, loss, solves, sol.costs,
                            sol.inlier_ratio, sol.residual_m, sol.information)
 
 
