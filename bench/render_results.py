@@ -15,6 +15,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from render_profiles import _knobs, _stage_profile  # noqa: E402
 from render_systems import (  # noqa: E402
     _faults,
     _gpu_check,
@@ -350,7 +351,7 @@ RENDERERS = {"odometry": _odometry, "first_call": _first_call, "loop_edges": _lo
              "transport": _transport, "bandwidth": _bandwidth, "scale": _scale,
              "faults": _faults, "gpu_check": _gpu_check,
              "gpu_profile": _gpu_profile, "pose_graph_cost": _pose_graph_cost,
-             "depth_codec": _depth_codec}
+             "depth_codec": _depth_codec, "stage_profile": _stage_profile, "knobs": _knobs}
 
 
 if __name__ == "__main__":

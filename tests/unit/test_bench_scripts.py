@@ -160,6 +160,41 @@ def test_results_page_is_rendered_from_the_committed_json() -> None:
         "docs/results.md is stale: python bench/render_results.py"
 
 
+def test_every_committed_report_is_on_the_results_page() -> None:
+    """No bench's figures are left out of docs/results.md for want of a renderer."""
+    render = _bench_module("render_results")
+    paths = sorted(render.RESULTS.glob("*.json"))
+    missing = {p.name for p in paths
+               if json.loads(p.read_text()).get("bench") not in render.RENDERERS}
+    assert not missing, missing
+    page = render.render(paths)
+    assert all(f"## {p.stem}\n" in page for p in paths)
+
+
+def test_stage_profile_and_knob_reports_render_their_tables() -> None:
+    render = _bench_module("render_results")
+    stage = {"calls_per_frame": 2.0, "ms_per_call": 5.0, "s_per_frame": 0.01,
+             "share_phase": 0.25}
+    phase = {"s_per_frame": 0.04, "stages": {"search": stage, "decoder_forward": stage}}
+    report = {"preset": "cpu", "overrides": ["mapping.iters_first=100"], "threads": 1,
+              "frames": 11, "resolution": [240, 320], "track_iters_per_frame": 7.0,
+              "map_steps_per_frame": 10.0,
+              "first_frame": {"mapping": {"s_per_frame": 12.0}, "total_s_per_frame": 12.5},
+              "per_frame": {"tracking": phase, "total_s_per_frame": 0.04}}
+    text = render._stage_profile(report)
+    assert "frames 1-10 at 320x240: 7.0 LM solves and 10.0 mapping steps" in text
+    assert "|  | decoder_forward | 0.010 | 5.0 | 2.0 | 25 % |" in text
+    assert "| **tracking** |  | **0.040** |" in text and "**mapping**" not in text
+    assert "First frame (the first mapping call): 12.5 CPU s, mapping 12.0." in text
+    run = {"ate_se3_cm": 0.6, "max_error_cm": 1.5, "rpe1_mm": 4.2, "rpe1_deg": 0.15,
+           "events": {"suspect": 1, "recovered": 1, "lost": 0}, "s_per_frame": 2.0,
+           "s_per_frame_after_first": 1.5, "tracking_s_per_frame": 1.0,
+           "mapping_s_per_call": 6.0, "first_mapping_s": 30.0}
+    text = render._knobs({"runs": {"preset": run, "tracking.iters=5": {"error": "boom"}}})
+    assert "| preset | 0.6 | 1.5 | 4.2 / 0.15 | 1 / 1 / 0 | 2.0 | 1.5 | 1.0 | 6.0 | 30.0 |" in text
+    assert "| tracking.iters=5 | error |" in text
+
+
 def test_loop_edges_bench_says_where_the_ground_truth_fits_worse() -> None:
     """Real pairs carry how well the views fit at the ground truth and at the registered
     pose; the summary counts the pairs the registration fits better and the page says so."""
