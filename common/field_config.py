@@ -32,7 +32,7 @@ def tracker_args_from_config(tracking_cfg: TrackingConfig) -> dict[str, Any]:
         prior_sigma_t=tr.prior_sigma_t, prior_sigma_r=tr.prior_sigma_r,
         reference_weight=tr.reference_weight, reference_pixels=tr.reference_pixels,
         n_near=tr.n_near, n_uniform=tr.n_uniform, relinearise_steps=tr.relinearise_steps,
-        depth_iters=tr.depth_iters, step_stretch=tr.step_stretch, depth_pixels=tr.depth_pixels,
+        depth_iters=tr.depth_iters, step_stretch=tr.step_stretch,
     )
 
 

@@ -163,8 +163,6 @@ class TrackingConfig(Section):
     """lm: after a step that beat its model 1.5x, try the next this much longer first (1 = off)."""
     depth_iters: PositiveInt | None = None
     """lm with colour: solves of the depth-only phase before the luminance one (null: iters)."""
-    depth_pixels: PositiveInt | None = None
-    """lm with colour: rays of the depth-only phase, spread over the drawn ones (null: all)."""
     n_near: PositiveInt | None = None
     """Samples per tracking ray around the measured depth (null: field.n_near)."""
     n_uniform: NonNegativeInt | None = None

@@ -126,8 +126,6 @@ class Tracker:
         step_stretch: "lm" only: after an accepted step that lowered the cost by more than
             1.5 times its quadratic model's prediction, the next step is first tried this many
             times longer and, when that does not lower the cost, as solved (1: off).
-        depth_pixels: "lm" with a colour term only: rays of the depth-only phase, evenly
-            spread over the drawn ones (None: all of them).
     """
 
     def __init__(
@@ -157,10 +155,7 @@ class Tracker:
         depth_iters: int | None,
         step_stretch: float,
         reuse_neighbours: float = 0.01,
-        depth_pixels: int | None = None,
     ) -> None:
-        if depth_pixels is not None and depth_pixels < 6:
-            raise ValueError(f"Tracker: depth_pixels must be >= 6 or None, got {depth_pixels}")
         if depth_iters is not None and depth_iters < 1:
             raise ValueError(f"Tracker: depth_iters must be >= 1 or None, got {depth_iters}")
         if not step_stretch >= 1.0:
@@ -201,7 +196,6 @@ class Tracker:
         self.reuse_neighbours = reuse_neighbours
         self.relinearise_steps = relinearise_steps
         self.depth_iters = depth_iters
-        self.depth_pixels = depth_pixels
         self.step_stretch = step_stretch
 
     def track(
@@ -383,11 +377,9 @@ class Tracker:
                 # Depth first: its basin is wide (a rendered surface moves smoothly with the
                 # pose), while luminance is periodic on striped or tiled texture and, from a
                 # guess a degree off, pulls towards the wrong stripe.
-                # It only has to reach the basin: fewer rays may do, taken across the view.
-                few = _spread(len(u), self.depth_pixels, u.device)
-                first = solve_pose_lm(point_map, decoders, u[few], v[few], t[few],
-                                      depth_obs[few], None, intr.fx, intr.fy, intr.cx, intr.cy,
-                                      T_init, replace(settings, iters=depth_iters))
+                first = solve_pose_lm(point_map, decoders, u, v, t, depth_obs, None, intr.fx,
+                                      intr.fy, intr.cx, intr.cy, T_init,
+                                      replace(settings, iters=depth_iters))
                 T_start, depth_solves = first.T_world_cam, first.iters
             sol = solve_pose_lm(point_map, decoders, u, v, t, depth_obs, gray, intr.fx, intr.fy,
                                 intr.cx, intr.cy, T_start, settings, reference)
@@ -398,15 +390,6 @@ class Tracker:
         solves = depth_solves + sol.iters
         return TrackResult(sol.T_world_cam, solves, loss, solves, sol.costs,
                            sol.inlier_ratio, sol.residual_m, sol.information)
-
-
-def _spread(n: int, m: int | None, device: torch.device) -> torch.Tensor | slice:
-    """m indices evenly spaced over range(n), all when m is None or >= n. A stratified draw
-    lists its pixels by cell in raster order (shuffled where it dropped a surplus), so every
-    m-th of them still covers the whole view."""
-    if m is None or m >= n:
-        return slice(None)
-    return torch.linspace(0, n - 1, m, device=device).round().long()
 
 
 def sample_pixels(

@@ -374,32 +374,3 @@ def test_tracker_samples_per_ray_may_differ_from_mapping() -> None:
     assert (field.sampler.n_near, field.sampler.n_uniform) == (SPEC.n_near, SPEC.n_uniform)
     with pytest.raises(ValueError):
         load_config("cpu", overrides=["tracking.n_near=0"], env={})
-
-
-def test_the_depth_phase_runs_on_fewer_rays_spread_over_the_view(
-        fitted: dict, monkeypatch: pytest.MonkeyPatch) -> None:
-    """`depth_pixels` gives the depth-only phase every k-th drawn ray (across the view) and
-    the luminance phase all of them; the pose still ends within the LM tests' bounds."""
-    import cpslam.common.field.tracking as tracking
-
-    rays: list[tuple[int, float, float]] = []  # per solve: rays, spread of u and of v
-    solve = tracking.solve_pose_lm
-
-    def counted(point_map, decoders, u, v, *args, **kwargs):
-        rays.append((len(u), float(u.float().std()), float(v.float().std())))
-        return solve(point_map, decoders, u, v, *args, **kwargs)
-
-    monkeypatch.setattr(tracking, "solve_pose_lm", counted)
-    T_true = fitted["T_true"]
-    for depth_pixels in (None, 100):
-        rays.clear()
-        tracker = _lm(fitted, color_weight=1.0, depth_iters=3, depth_pixels=depth_pixels)
-        result = fitted_track(fitted, tracker, _off_2cm_2deg(T_true), 0)
-        t1, r1 = _errors(result.T_world_cam, T_true)
-        assert t1 < 0.008 and r1 < 0.5, (depth_pixels, t1, r1)
-        (depth_rays, du, dv), (lum_rays, lu, lv) = rays
-        assert lum_rays == 500 and depth_rays == (100 if depth_pixels else 500)
-        # Every fifth ray of a stratified draw spans the view as the whole draw does.
-        assert du > 0.8 * lu and dv > 0.8 * lv, rays
-    with pytest.raises(ValueError, match="depth_pixels"):
-        _lm(fitted, depth_pixels=3)
