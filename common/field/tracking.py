@@ -386,7 +386,7 @@ class Tracker:
         finally:
             decoders.requires_grad_(True)
         loss = sol.costs[-1] if sol.costs else math.nan
-        # Both phases' solves: the depth phase's cost as much as the others.
+        # The frame's work is both phases' solves, not the last phase's alone.
         solves = depth_solves + sol.iters
         return TrackResult(sol.T_world_cam, solves, loss, solves, sol.costs,
                            sol.inlier_ratio, sol.residual_m, sol.information)
