@@ -75,10 +75,10 @@ class TrackResult:
     solves of both phases); loss: the loss at the chosen pose (best or last evaluated; "lm":
     robust cost per kept pixel); best_iter: step whose pose was chosen; losses: loss of every
     step (at the pose before that step's update; "lm": at every linearisation point of the
-    last phase); inlier_ratio: share of the drawn
-    pixels the loss kept at the chosen pose; residual_m: median absolute depth error (m) of
-    the pixels whose rays reach the map, at the chosen pose; information: [6, 6]
-    Gauss-Newton information of the pose increment (translation first, "lm" only, else None).
+    last phase); inlier_ratio: share of the drawn pixels the loss kept at the chosen pose;
+    residual_m: median absolute depth error (m) of the pixels whose rays reach the map, at the
+    chosen pose; information: [6, 6] Gauss-Newton information of the pose increment
+    (translation first, "lm" only, else None).
     """
 
     T_world_cam: np.ndarray
