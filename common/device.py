@@ -3,7 +3,9 @@ down."""
 
 from __future__ import annotations
 
+import ctypes
 import os
+import platform
 import re
 from pathlib import Path
 
@@ -74,6 +76,8 @@ def configure_torch(num_threads: int | str | None, deterministic: bool, share: i
     """Apply `run.num_threads` (see `resolve_num_threads`) and `run.deterministic`; return the
     thread count torch now uses.
 
+    It also keeps freed memory in the process's heap (`retain_freed_memory`).
+
     Deterministic algorithms are what make a CPU run with more than one thread repeat itself:
     without them two 2-thread runs of the same 12 frames ended 3 cm apart, with them they are
     bit-identical, at the same speed, and one thread gives the same bits either way. On CUDA,
@@ -81,6 +85,7 @@ def configure_torch(num_threads: int | str | None, deterministic: bool, share: i
     """
     import torch
 
+    retain_freed_memory()
     threads = resolve_num_threads(num_threads, share)
     if threads is not None:
         torch.set_num_threads(threads)
@@ -89,3 +94,38 @@ def configure_torch(num_threads: int | str | None, deterministic: bool, share: i
         os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
     torch.use_deterministic_algorithms(deterministic, warn_only=True)
     return torch.get_num_threads()
+
+
+# glibc's mallopt parameters (malloc.h) and the largest mmap threshold it accepts on 64 bits.
+_M_TRIM_THRESHOLD = -1
+_M_MMAP_THRESHOLD = -3
+_MMAP_THRESHOLD_MAX = 32 * 1024 * 1024
+_TRIM_THRESHOLD = 1024 * 1024 * 1024
+
+
+def retain_freed_memory() -> bool:
+    """Keep memory that tensors free in the heap for the next ones, instead of giving it back
+    to the OS; return whether the allocator was changed.
+
+    Every render and backward pass allocates and frees per-pair tensors of a few MB. glibc
+    hands such blocks back (munmap, or a trim of the heap's top) and the next allocation
+    faults its pages in again, which costs system time on every frame (Open3D pays the
+    same; docs/performance.md). With both thresholds set, blocks up to 32 MiB come from the
+    heap and stay there; the resident memory stays at its peak. Nothing changes where the C
+    library is not glibc or the environment sets either threshold (MALLOC_TRIM_THRESHOLD_,
+    MALLOC_MMAP_THRESHOLD_ or their GLIBC_TUNABLES), which is then the user's choice.
+    """
+    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
+        return False
+    tunables = os.environ.get("GLIBC_TUNABLES", "")
+    if any(f"MALLOC_{name.upper()}_" in os.environ or f"glibc.malloc.{name}" in tunables
+           for name in ("trim_threshold", "mmap_threshold")):
+        return False
+    try:
+        libc = ctypes.CDLL(None)
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):  # pragma: no cover - glibc always has mallopt
+        return False
+    mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
+    return bool(mallopt(_M_MMAP_THRESHOLD, _MMAP_THRESHOLD_MAX)
+                and mallopt(_M_TRIM_THRESHOLD, _TRIM_THRESHOLD))

@@ -1,4 +1,5 @@
 import os
+import platform
 
 import pytest
 import torch
@@ -64,3 +65,47 @@ def test_configure_torch_sets_threads_and_determinism() -> None:
     finally:
         torch.set_num_threads(before[0])
         torch.use_deterministic_algorithms(before[1], warn_only=True)
+
+
+_HEAP_PROBE = """
+import ctypes, sys
+from cpslam.common.device import retain_freed_memory
+changed = retain_freed_memory() if sys.argv[1] == "retain" else False
+libc = ctypes.CDLL(None)
+libc.malloc.restype, libc.malloc.argtypes = ctypes.c_void_p, (ctypes.c_size_t,)
+libc.free.argtypes = (ctypes.c_void_p,)
+
+class Info(ctypes.Structure):
+    _fields_ = [(name, ctypes.c_size_t) for name in (
+        "arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks", "fsmblks", "uordblks",
+        "fordblks", "keepcost")]
+
+libc.mallinfo2.restype = Info
+libc.free(libc.malloc(8 << 20))
+print(int(changed), libc.mallinfo2().fordblks)
+"""
+
+
+def _heap_probe(mode: str, env: dict[str, str] | None = None) -> tuple[bool, int]:
+    import subprocess
+    import sys
+
+    run_env = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_")}
+    run_env.update(env or {})
+    out = subprocess.run([sys.executable, "-c", _HEAP_PROBE, mode], env=run_env, check=True,
+                         capture_output=True, text=True).stdout.split()
+    return out[0] == "1", int(out[1])
+
+
+@pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="glibc's allocator only")
+def test_freed_blocks_stay_in_the_heap() -> None:
+    """An 8 MiB block is handed back to the OS by default and kept for the next allocation
+    once the allocator is tuned; a threshold set in the environment is left alone."""
+    import ctypes
+
+    if not hasattr(ctypes.CDLL(None), "mallinfo2"):
+        pytest.skip("glibc older than 2.33 has no mallinfo2")
+    assert _heap_probe("default") == (False, pytest.approx(0, abs=4 << 20))
+    changed, free_bytes = _heap_probe("retain")
+    assert changed and free_bytes >= 8 << 20
+    assert _heap_probe("retain", {"MALLOC_TRIM_THRESHOLD_": "131072"})[0] is False
