@@ -137,9 +137,12 @@ class Decoders(nn.Module):
         # largest of the pass; a Linear's backward does not read its output; the same sum, so
         # the same bits). The activations stay out of place: LeakyReLU's backward from its
         # output (the in-place form) ran at half the speed of the one from its input.
+        # Row gathers use index_select: on CPU it copies [V, H] rows about five times faster
+        # than indexing with a tensor (the same values; the same gradient bits in
+        # deterministic mode).
         act = self.act
         h = self.c_offset(positional_encoding(pair_offset, self.pe_offset))
-        h = act(h.add_(point_hidden[pair_point]))
+        h = act(h.add_(point_hidden.index_select(0, pair_point)))
         for layer in self.c_mid:
             h = act(layer(h))
         f_pair = act(self.c_out(h))  # [V, c_out]
@@ -147,7 +150,7 @@ class Decoders(nn.Module):
         dist = torch.sqrt((pair_offset * pair_offset).sum(-1) + _DIST_EPS**2)
         w = 1.0 / dist
         w_sum = torch.zeros(n_samples, device=device, dtype=w.dtype).index_add(0, pair_sample, w)
-        w = w / w_sum[pair_sample]
+        w = w / w_sum.index_select(0, pair_sample)
 
         occ_pair = torch.sigmoid(self.g(f_pair)).squeeze(-1)
         occupancy = occupancy.index_add(0, pair_sample, w * occ_pair)
@@ -159,7 +162,7 @@ class Decoders(nn.Module):
         f_sample = torch.zeros(
             n_samples, f_pair.shape[1], device=device, dtype=f_pair.dtype
         ).index_add(0, pair_sample, w[:, None] * f_pair)
-        rgb = torch.sigmoid(self.u(f_sample[decoded]))
+        rgb = torch.sigmoid(self.u(f_sample.index_select(0, decoded)))
         colors = torch.zeros(n_samples, 3, device=device, dtype=rgb.dtype)
         return occupancy, colors.index_copy(0, decoded, rgb)
 

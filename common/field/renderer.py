@@ -241,14 +241,14 @@ def _render_chunk(
     # at every call; the rest is kept.
     hidden, xyz_pair = pairs.get("hidden"), pairs.get("xyz")
     if hidden is None:
-        hidden = decoders.point_hidden(features[pairs["points"]])
+        hidden = decoders.point_hidden(features.index_select(0, pairs["points"]))
         if cache is not None and not hidden.requires_grad:
             cache["hidden"] = hidden
     if xyz_pair is None:
-        xyz_pair = xyz[pairs["global"]].to(x.dtype)
+        xyz_pair = xyz.index_select(0, pairs["global"]).to(x.dtype)
         if cache is not None and not xyz_pair.requires_grad:
             cache["xyz"] = xyz_pair
-    offsets = x[pairs["sample"]] - xyz_pair
+    offsets = x.index_select(0, pairs["sample"]) - xyz_pair
     occ, rgb = decoders.forward_pairs(None, pairs["point"], offsets, pairs["sample"],
                                       x.shape[0], color, point_hidden=hidden)
     occ = occ.reshape(n_rays, n_per_ray)
@@ -273,14 +273,14 @@ def _sample_pairs(nbr: torch.Tensor, xyz: torch.Tensor, device: torch.device
                   ) -> dict[str, torch.Tensor]:
     """The (sample, neighbour) pairs of nbr [S, k]: sample [V], global [V] (map rows),
     point [V] (rows of points) and points [P] (the distinct map rows)."""
-    pair_sample, slot = (nbr >= 0).nonzero(as_tuple=True)
-    pair_global = nbr[pair_sample, slot]
+    flat = nbr.reshape(-1)
+    at = (flat >= 0).nonzero(as_tuple=True)[0]
+    pair_global = flat.index_select(0, at)
     # Features enter C's first layer once per distinct point, not once per pair. The distinct
     # points come from a mask over the map (linear time) rather than torch.unique (a sort).
-    used = torch.zeros(len(xyz), dtype=torch.bool, device=device)
-    used[pair_global] = True
-    return {"sample": pair_sample, "global": pair_global,
-            "point": (torch.cumsum(used, 0) - 1)[pair_global],
+    used = torch.zeros(len(xyz), dtype=torch.bool, device=device).index_fill_(0, pair_global, True)
+    return {"sample": torch.div(at, nbr.shape[1], rounding_mode="floor"), "global": pair_global,
+            "point": (torch.cumsum(used, 0) - 1).index_select(0, pair_global),
             "points": used.nonzero(as_tuple=True)[0]}
 
 
