@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import resource
 import sys
 import time
 from pathlib import Path
@@ -87,7 +88,7 @@ def run_odometry(cfg, seq, factor: float, device: str, real: bool,
     intrinsics = seq.intrinsics.scaled(factor) if factor != 1.0 else seq.intrinsics
     odometry = Odometry.from_config(cfg, intrinsics, device)
     results = []
-    start, start_cpu = time.perf_counter(), time.process_time()
+    start, start_cpu, start_sys = time.perf_counter(), time.process_time(), os.times().system
     done, first_tracked = 0, None
     for i in range(len(seq)):
         if max_seconds and i >= MIN_FRAMES and time.perf_counter() - start > max_seconds:
@@ -103,6 +104,7 @@ def run_odometry(cfg, seq, factor: float, device: str, real: bool,
             first_tracked = time.perf_counter() - start
     odometry.close()  # the mapping calls still running belong to the run
     total, total_cpu = time.perf_counter() - start, time.process_time() - start_cpu
+    total_sys = os.times().system - start_sys
     stamps, poses = odometry.trajectory()
     out = {"frames": done, "frames_asked": len(seq),
            "resolution": f"{intrinsics.width}x{intrinsics.height}"}
@@ -115,6 +117,10 @@ def run_odometry(cfg, seq, factor: float, device: str, real: bool,
         **timings(results, total, first_tracked),
         # Process CPU time (every thread): comparable between runs that share the cores.
         "cpu_s_per_frame": round(total_cpu / done, 3),
+        # The kernel's share of it (page faults, thread wake-ups), and the process's peak
+        # resident memory (Linux reports ru_maxrss in KiB).
+        "sys_s_per_frame": round(total_sys / done, 3),
+        "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
         "points": len(odometry.point_map),
         "keyframes": len(odometry.keyframes),
         "schedule": odometry.schedule_stats(),
