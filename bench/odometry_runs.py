@@ -108,6 +108,8 @@ def run_odometry(cfg, seq, factor: float, device: str, real: bool,
     stamps, poses = odometry.trajectory()
     out = {"frames": done, "frames_asked": len(seq),
            "resolution": f"{intrinsics.width}x{intrinsics.height}"}
+    if real and done == len(seq):  # for the ground truth's own error (`agreement`)
+        out["poses"] = np.round(poses, 7).tolist()
     try:
         out.update(accuracy(seq, stamps, poses, real, frames=done))
     except ValueError as error:  # too few frames for an alignment: keep the timings
@@ -247,6 +249,8 @@ def open3d_odometry(seq_info: dict, frames: int) -> dict:
         poses, seconds, failures = open3d_chain(seq, intr, factor, depth_max)
         entry = accuracy(seq, seq.timestamps, poses, real)
         entry.update(failures=failures, s_per_frame=round(seconds / len(seq), 3))
+        if real:
+            entry["poses"] = np.round(poses, 7).tolist()
         out[f"{intr.width}x{intr.height}"] = entry
     return out
 
@@ -281,3 +285,41 @@ def open3d_chain(seq, intr, factor: float, depth_max: float):
             poses.append(poses[-1] @ T_prev_cur)
         previous = image
     return np.stack(poses), time.perf_counter() - start, failures
+
+
+def agreement(sequences: list[dict], runs: list[dict], open3d: dict, frames: int) -> dict:
+    """Per real sequence, the three-cornered hat (`cpslam.tools.eval.hat`) of the ground
+    truth, Open3D at full size and each of our runs without loop closure: their pairwise RMS
+    differences and each one's estimated own error (ATE and RPE over 1, 10, 50 frames, mm),
+    per run and averaged over the runs. Runs and Open3D carry their "poses" for this."""
+    from cpslam.common.datasets import open_sequence
+    from cpslam.tools.eval.hat import hat_table, pairwise_differences
+
+    out = {}
+    for info in (s for s in sequences if s["kind"] == "real"):
+        sizes = open3d.get(info["name"], {})
+        full = sizes[max(sizes, key=lambda k: int(k.split("x")[0]))] if sizes else {}
+        gt = open_sequence(info["path"], frames=slice(0, frames)).gt_poses()
+        mine = [r for r in runs if r["sequence"] == info["name"] and "poses" in r
+                and r.get("loops", "off") == "off" and len(r["poses"]) == len(gt)]
+        if "poses" not in full or not mine:
+            continue
+        per_run = []
+        for run in mine:
+            pairs = pairwise_differences({"ground_truth": gt, "open3d": np.array(full["poses"]),
+                                          "cpslam": np.array(run["poses"])})
+            hat = hat_table(pairs, "ground_truth", "open3d", "cpslam")
+            per_run.append({"seed": run["seed"], "threads": run["threads"],
+                            "differences_mm": _mm(pairs), "own_error_mm": _mm(hat)})
+        metrics = per_run[0]["own_error_mm"]
+        mean = {m: {src: round(float(np.mean([r["own_error_mm"][m][src] for r in per_run])), 2)
+                    for src in metrics[m]} for m in metrics}
+        out[info["name"]] = {"runs": per_run, "own_error_mean_mm": mean}
+    return out
+
+
+def _mm(table: dict[str, dict[str, float]]) -> dict[str, dict[str, float]]:
+    """Metres to millimetres, keys "ate_m" -> "ate" (either level), rounded to 0.01 mm."""
+    return {key.removesuffix("_m"): {k.removesuffix("_m"): round(1000 * v, 2)
+                                     for k, v in row.items()}
+            for key, row in table.items()}

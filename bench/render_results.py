@@ -133,7 +133,18 @@ def _odometry(report: dict) -> str:
                    f"(threads {sorted({r['threads'] for r in runs})}, CPU code paths "
                    f"{sorted({r['capability'] for r in runs})}, preset `{report['preset']}`"
                    f"{', ' + ' '.join(report['overrides']) if report['overrides'] else ''}).")
+    out += [_hat(name, e) for name, e in s.get("ground_truth_error", {}).items()]
     return "\n".join(out) + "\n"
+
+
+def _hat(name: str, entry: dict) -> str:
+    """The three-cornered hat of the ground truth, Open3D and our runs (bench/odometry.py)."""
+    sources = ("ground_truth", "open3d", "cpslam")
+    rows = [("metric (RMS, mm)", "ground truth", "Open3D 640x480", "cpslam")]
+    rows += [(m, *(v[k] for k in sources)) for m, v in entry["own_error_mean_mm"].items()]
+    return (f"\n{name}: each source's own error estimated from the three pairwise differences "
+            f"(three-cornered hat, `cpslam.tools.eval.hat`), mean over {len(entry['runs'])} "
+            f"runs; a negative entry is a negative variance estimate.\n\n{_table(rows)}")
 
 
 def _first_tracked(runs: list[dict]) -> str:
