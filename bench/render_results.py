@@ -140,11 +140,16 @@ def _odometry(report: dict) -> str:
 def _hat(name: str, entry: dict) -> str:
     """The three-cornered hat of the ground truth, Open3D and our runs (bench/odometry.py)."""
     sources = ("ground_truth", "open3d", "cpslam")
+    def cell(metric: str, source: str) -> str:
+        values = [r["own_error_mm"][metric][source] for r in entry["runs"]]
+        return f"{entry['own_error_mean_mm'][metric][source]} ({min(values)} to {max(values)})"
+
     rows = [("metric (RMS, mm)", "ground truth", "Open3D 640x480", "cpslam")]
-    rows += [(m, *(v[k] for k in sources)) for m, v in entry["own_error_mean_mm"].items()]
+    rows += [(m, *(cell(m, k) for k in sources)) for m in entry["own_error_mean_mm"]]
     return (f"\n{name}: each source's own error estimated from the three pairwise differences "
-            f"(three-cornered hat, `cpslam.tools.eval.hat`), mean over {len(entry['runs'])} "
-            f"runs; a negative entry is a negative variance estimate.\n\n{_table(rows)}")
+            f"(three-cornered hat, `cpslam.tools.eval.hat`), mean (range) over the "
+            f"{len(entry['runs'])} runs; a negative entry is a negative variance estimate.\n\n"
+            f"{_table(rows)}")
 
 
 def _first_tracked(runs: list[dict]) -> str:
