@@ -116,6 +116,7 @@ class Odometry:
         mapping_threads: int | None = None,
         all_threads: int | None = None,
         first_publish_every: int = 0,
+        previous_reference: bool = False,
     ) -> None:
         if init not in MOTION_MODELS:
             raise ValueError(f"Odometry: init must be zero_motion or constant_velocity, "
@@ -150,6 +151,7 @@ class Odometry:
         self._last_kf_count: int | None = None
         # The latest keyframe's full-size images for tracking.reference_weight.
         self._reference: tuple[int, ReferenceImage] | None = None
+        self.previous_reference = previous_reference
         self._last_map_count: int | None = None
         self.frames = FrameLog()
 
@@ -184,6 +186,7 @@ class Odometry:
             schedule=cfg.run.schedule, max_pending_keyframes=mp.max_pending_keyframes,
             mapping_threads=split_threads() if concurrent else None, all_threads=all_threads,
             first_publish_every=mp.first_publish_every,
+            previous_reference=tr.previous_reference,
         )
 
     # ---------------------------------------------------------------------------- per frame
@@ -331,6 +334,24 @@ class Odometry:
             torch.from_numpy(rgb).to(self.device), torch.from_numpy(depth).to(self.device),
             self.keyframes.get(kf_id).T_world_cam, (intr.fx, intr.fy, intr.cx, intr.cy)))
 
+    def _reference_views(self) -> list[ReferenceImage]:
+        """The views a frame is compared with (tracking.reference_weight): the latest
+        keyframe and, with tracking.previous_reference, the previous frame at its tracked pose
+        if it was tracked (a sharp view one frame away, for the scatter from frame to frame)."""
+        views = []
+        if self._reference is not None and self._reference[0] in self.keyframes:
+            kf_id, view = self._reference
+            view.T_world_ref = self.keyframes.get(kf_id).T_world_cam  # corrections
+            views.append(view)
+        previous = self._last_tracked
+        if self.previous_reference and previous is not None and self.frames.tracked[-1] \
+                and self.tracker.reference_weight > 0:
+            intr = self.intrinsics
+            views.append(ReferenceImage.from_rgbd(previous.rgb_t, previous.depth_t,
+                                                  self.frames.poses[-1],
+                                                  (intr.fx, intr.fy, intr.cx, intr.cy)))
+        return views
+
     def _guesses(self) -> dict[str, np.ndarray]:
         return motion_guesses(self.frames.poses, self.frames.tracked)
 
@@ -345,10 +366,7 @@ class Odometry:
         # The recovery draws its pixels from a seed of its own (leaving `generator` to the
         # mapping that follows, as without recovery).
         seed = (self.seed * 1_000_003 + current.index) * 2 + 1
-        reference = None
-        if self._reference is not None and self._reference[0] in self.keyframes:
-            kf_id, reference = self._reference
-            reference.T_world_ref = self.keyframes.get(kf_id).T_world_cam  # corrections
+        reference = self._reference_views()
         result = self.tracker.track(state.point_map, state.decoders, current.rgb_t,
                                     current.depth_t, T_init, generator, reference=reference)
         if self.recovery is None:

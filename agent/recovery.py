@@ -36,6 +36,8 @@ import torch
 from cpslam.common.geometry import invert, se3_log
 
 if TYPE_CHECKING:
+    from collections.abc import Sequence
+
     from cpslam.agent.keyframes import KeyframeStore
     from cpslam.common.camera import Intrinsics
     from cpslam.common.config import RecoveryConfig
@@ -152,7 +154,7 @@ class Recovery:
         intrinsics: Intrinsics,
         keyframes: KeyframeStore | None,
         generator_seed: int,
-        reference: ReferenceImage | None = None,
+        reference: Sequence[ReferenceImage] = (),
     ) -> RecoveryOutcome:
         """Re-track a suspect frame from other guesses (``guesses``: name -> T_world_cam,
         the one it was tracked from included), then from keyframes; the best outcome. Every
@@ -191,7 +193,7 @@ class Recovery:
 
     def _track_all(self, tracker: Tracker, point_map: NeuralPointMap, decoders: Decoders,
                    frame: Frame, guesses: dict[str, np.ndarray], seed: int,
-                   reference: ReferenceImage | None) -> list[tuple[str, TrackResult]]:
+                   reference: Sequence[ReferenceImage]) -> list[tuple[str, TrackResult]]:
         out = []
         for name, T in guesses.items():
             gen = torch.Generator(device="cpu").manual_seed(seed)

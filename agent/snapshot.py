@@ -8,6 +8,10 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+import numpy as np
+import torch
+
+from cpslam.agent.recovery import Frame
 from cpslam.common.camera import Intrinsics
 
 if TYPE_CHECKING:
@@ -36,6 +40,8 @@ def odometry_state(odo: Odometry) -> dict:
         "last_keyframe_count": -1 if odo._last_kf_count is None else odo._last_kf_count,
         "last_mapping_count": -1 if odo._last_map_count is None else odo._last_map_count,
         **({"recovery": odo.recovery.state_dict()} if odo.recovery is not None else {}),
+        **({"last_tracked": _frame_state(odo._last_tracked)}
+           if odo._last_tracked is not None else {}),
     }
 
 
@@ -70,3 +76,22 @@ def restore_odometry(odo: Odometry, state: dict) -> None:
         odo._set_reference(latest.kf_id)
     if odo.recovery is not None and "recovery" in state:
         odo.recovery.load_state_dict(state["recovery"])
+    # The view tracking.previous_reference compares the next frame with, and where the
+    # recovery's RGB-D odometry starts (states written before it had none: both wait a frame).
+    odo._last_tracked = _frame(state["last_tracked"], odo) if "last_tracked" in state else None
+
+
+def _frame_state(frame: Frame) -> dict:
+    return {"index": int(frame.index), "rgb": torch.from_numpy(frame.rgb.copy()),
+            "depth": torch.from_numpy(frame.depth.copy())}
+
+
+def _frame(state: dict, odo: Odometry) -> Frame:
+    rgb = state["rgb"].numpy().astype(np.uint8)
+    depth = state["depth"].numpy().astype(np.float32)
+    if rgb.shape != (*odo.intrinsics.shape, 3) or depth.shape != odo.intrinsics.shape:
+        raise ValueError(f"odometry state: last_tracked is {rgb.shape} / {depth.shape}, "
+                         f"expected {odo.intrinsics.shape} images")
+    return Frame(int(state["index"]), rgb, depth,
+                 torch.from_numpy(rgb).to(odo.device).float() / 255.0,
+                 torch.from_numpy(depth).to(odo.device))

@@ -41,7 +41,7 @@ first, in units of the normalised residuals) says how well each direction is con
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -115,13 +115,14 @@ def solve_pose_lm(
     fx: float, fy: float, cx: float, cy: float,
     T_init: np.ndarray,
     settings: LMSettings,
-    reference: tuple[ReferenceImage, torch.Tensor, torch.Tensor] | None = None,
+    reference: tuple[list[ReferenceImage], torch.Tensor, torch.Tensor] | None = None,
 ) -> LMSolution:
     """Refine T_init [4, 4] for the pixels u, v [R] (columns, rows) with samples t [R, n],
     observed depth [R] and luminance [R] (None without a colour term). The decoders must not
-    require gradients (the caller freezes them). reference: (the reference view, the
+    require gradients (the caller freezes them). reference: (the reference views, the
     frame's points xyz_cam [P, 3] and their luminance [P]) adds the image terms of
-    `cpslam.common.field.image_terms`, weighted by settings.reference_weight."""
+    `cpslam.common.field.image_terms` against each view, weighted by
+    settings.reference_weight."""
     problem = _Problem(point_map, decoders, u, v, t, depth_obs, gray_obs, (fx, fy, cx, cy),
                        settings, reference)
     T_init = np.asarray(T_init, dtype=np.float64)
@@ -206,9 +207,9 @@ class _Scales:
     color: float
     kept: int
     median_hit: float  # median |depth error| (m) of the pixels reaching the map
-    ref_mask: torch.Tensor | None = None  # bool [P]: reference pixels in use
-    ref_gray: float = 1.0
-    ref_depth: float = 1.0
+    # Per reference view (None: too few of its pixels): bool [P] pixels in use, and the
+    # robust scales of its luminance and depth residuals.
+    refs: list[tuple[torch.Tensor, float, float] | None] = field(default_factory=list)
 
 
 class _Problem:
@@ -218,7 +219,8 @@ class _Problem:
                  v: torch.Tensor, t: torch.Tensor, depth_obs: torch.Tensor,
                  gray_obs: torch.Tensor | None, camera: tuple[float, float, float, float],
                  settings: LMSettings,
-                 reference: tuple[ReferenceImage, torch.Tensor, torch.Tensor] | None) -> None:
+                 reference: tuple[list[ReferenceImage], torch.Tensor, torch.Tensor] | None
+                 ) -> None:
         fx, fy, cx, cy = camera
         device = point_map.device
         self.point_map, self.decoders, self.s = point_map, decoders, settings
@@ -262,8 +264,8 @@ class _Problem:
             state["gray"] = out["color"].mean(-1)
             state["r_color"] = state["gray"].detach().double() - self.gray_obs
         if self.reference is not None:
-            ref, xyz, gray = self.reference
-            state["ref"] = image_residuals(ref, T, xyz, gray)
+            refs, xyz, gray = self.reference
+            state["ref"] = [image_residuals(ref, T, xyz, gray) for ref in refs]
         return state
 
     def moved_beyond_search(self, T: np.ndarray) -> bool:
@@ -292,14 +294,10 @@ class _Problem:
             color = max(1.4826 * float(state["r_color"][mask].abs().median()),
                         self.s.color_floor)
         scales = _Scales(mask, depth, color, kept, float(r[hit].abs().median()))
-        if "ref" in state:
-            r_gray, _, r_depth, _, valid = state["ref"]
-            if int(valid.sum()) >= _MIN_PIXELS:
-                scales.ref_mask = valid
-                scales.ref_gray = max(1.4826 * float(r_gray[valid].abs().median()),
-                                      self.s.color_floor)
-                scales.ref_depth = max(1.4826 * float(r_depth[valid].abs().median()),
-                                       self.s.depth_floor)
+        for r_gray, _, r_depth, _, valid in state.get("ref", ()):
+            scales.refs.append(None if int(valid.sum()) < _MIN_PIXELS else (
+                valid, max(1.4826 * float(r_gray[valid].abs().median()), self.s.color_floor),
+                max(1.4826 * float(r_depth[valid].abs().median()), self.s.depth_floor)))
         return scales
 
     def cost(self, state: dict, sc: _Scales) -> float:
@@ -308,12 +306,15 @@ class _Problem:
         if self.gray_obs is not None:
             total = total + self.s.color_weight * _huber(
                 state["r_color"][sc.mask] / sc.color, self.s.huber).sum()
-        if sc.ref_mask is not None:
-            r_gray, _, r_depth, _, valid = state["ref"]
-            for r, scale in ((r_gray, sc.ref_gray), (r_depth, sc.ref_depth)):
+        for (r_gray, _, r_depth, _, valid), ref in zip(state.get("ref", ()), sc.refs,
+                                                       strict=True):
+            if ref is None:
+                continue
+            mask, gray_scale, depth_scale = ref
+            for r, scale in ((r_gray, gray_scale), (r_depth, depth_scale)):
                 # A pixel that left the reference view costs as a large error, so that a
                 # pose cannot lower the cost by pushing pixels out of it.
-                x = torch.where(valid, r / scale, _MISS)[sc.ref_mask]
+                x = torch.where(valid, r / scale, _MISS)[mask]
                 total = total + self.s.reference_weight * _huber(x, self.s.huber).sum()
         return float(total)
 
@@ -341,10 +342,13 @@ class _Problem:
             w = weight * _huber_weight(r, self.s.huber)
             H += (J * w[:, None]).T @ J
             g += (J * w[:, None]).T @ r
-        if sc.ref_mask is not None:
-            r_gray, J_gray, r_depth, J_depth, valid = state["ref"]
-            use = sc.ref_mask & valid
-            for r, J, scale in ((r_gray, J_gray, sc.ref_gray), (r_depth, J_depth, sc.ref_depth)):
+        for (r_gray, J_gray, r_depth, J_depth, valid), ref in zip(state.get("ref", ()), sc.refs,
+                                                                 strict=True):
+            if ref is None:
+                continue
+            mask, gray_scale, depth_scale = ref
+            use = mask & valid
+            for r, J, scale in ((r_gray, J_gray, gray_scale), (r_depth, J_depth, depth_scale)):
                 r, J = r[use] / scale, J[use] / scale
                 w = self.s.reference_weight * _huber_weight(r, self.s.huber)
                 H += (J * w[:, None]).T @ J

@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
@@ -207,14 +208,15 @@ class Tracker:
         T_init: np.ndarray,
         generator: torch.Generator,
         iters: int | None = None,
-        reference: ReferenceImage | None = None,
+        reference: ReferenceImage | Sequence[ReferenceImage] | None = None,
     ) -> TrackResult:
         """Optimise the pose of one frame.
 
         rgb: float [H, W, 3] in [0, 1] (only read when color_weight > 0); depth: float32
         [H, W] metres, 0 = invalid; T_init: [4, 4] initial T_world_cam; generator: draws the
         pixels and sample jitter; iters: steps for this call (default: the tracker's);
-        reference: a view ("lm" with reference_weight > 0) the frame is also compared with.
+        reference: a view, or views ("lm" with reference_weight > 0), the frame is also
+        compared with.
         """
         explicit = iters is not None
         iters = self.iters if iters is None else int(iters)
@@ -232,8 +234,9 @@ class Tracker:
         t = self.sampler(depth_obs, generator)
         if self.method == "lm":
             terms = None
-            if reference is not None and self.reference_weight > 0:
-                terms = self._reference_points(rgb, depth, generator, reference)
+            refs = [reference] if isinstance(reference, ReferenceImage) else list(reference or ())
+            if refs and self.reference_weight > 0:
+                terms = self._reference_points(rgb, depth, generator, refs)
             return self._track_lm(point_map, decoders, u, v, t, depth_obs, color_obs, T_init,
                                   iters, depth_iters, terms)
         t_far = float(t.max())
@@ -307,15 +310,15 @@ class Tracker:
                            residual)
 
     def _reference_points(self, rgb: torch.Tensor, depth: torch.Tensor,
-                          generator: torch.Generator, reference: ReferenceImage
-                          ) -> tuple[ReferenceImage, torch.Tensor, torch.Tensor]:
+                          generator: torch.Generator, refs: list[ReferenceImage]
+                          ) -> tuple[list[ReferenceImage], torch.Tensor, torch.Tensor]:
         """The frame's pixels for the reference terms: back-projected points and luminance."""
         intr = self.intrinsics
         u, v = sample_pixels(depth, self.reference_pixels, generator, stratified=True)
         d = depth[v, u].double()
         xyz = torch.stack(((u.double() - intr.cx) / intr.fx * d,
                            (v.double() - intr.cy) / intr.fy * d, d), dim=-1)
-        return reference, xyz.to(depth.device), rgb[v, u].double().mean(-1)
+        return refs, xyz.to(depth.device), rgb[v, u].double().mean(-1)
 
     @torch.no_grad()
     def score(

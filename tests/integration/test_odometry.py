@@ -129,11 +129,14 @@ def test_two_threads_repeat_themselves(sequence_dir: Path) -> None:
         np.testing.assert_allclose(runs[0], other, rtol=0, atol=1e-9)
 
 
-def test_state_dict_round_trip_resumes_identically(sequence_dir: Path) -> None:
-    cfg = load_config("tiny", overrides=QUICK, env={})
+@pytest.mark.parametrize("previous", [False, True])
+def test_state_dict_round_trip_resumes_identically(sequence_dir: Path, previous: bool) -> None:
+    """Also with the previous frame as a reference view: the state carries that frame."""
+    sets = (*QUICK, f"tracking.previous_reference={str(previous).lower()}")
+    cfg = load_config("tiny", overrides=sets, env={})
     frames, seq = _frames(sequence_dir, cfg.camera.downscale, n=7)
     intrinsics = seq.intrinsics.scaled(cfg.camera.downscale)
-    odometry = _run(frames[:6], intrinsics)
+    odometry = _run(frames[:6], intrinsics, sets=sets)
     buffer = io.BytesIO()
     torch.save(odometry.state_dict(), buffer)
     buffer.seek(0)
@@ -147,6 +150,31 @@ def test_state_dict_round_trip_resumes_identically(sequence_dir: Path) -> None:
     np.testing.assert_array_equal(a.T_world_cam, b.T_world_cam)
     with pytest.raises(ValueError, match="saved at"):
         Odometry.from_config(cfg, intrinsics.scaled(0.5), "cpu").load_state_dict(state)
+
+
+def test_previous_frame_is_a_reference_view(sequence_dir: Path, monkeypatch) -> None:
+    """tracking.previous_reference: each frame is compared with the latest keyframe and with
+    the frame before it, at that frame's tracked pose."""
+    sets = (*QUICK, "tracking.previous_reference=true")
+    cfg = load_config("tiny", overrides=sets, env={})
+    frames, seq = _frames(sequence_dir, cfg.camera.downscale, n=4)
+    intrinsics = seq.intrinsics.scaled(cfg.camera.downscale)
+    odometry = Odometry.from_config(cfg, intrinsics, "cpu")
+    seen = []
+    track = odometry.tracker.track
+
+    def spy(*args, _track=track, **kwargs):
+        seen.append([view.T_world_ref.copy() for view in kwargs["reference"]])
+        return _track(*args, **kwargs)
+
+    monkeypatch.setattr(odometry.tracker, "track", spy)
+    for frame in frames:
+        odometry.step(frame)
+    _, poses = odometry.trajectory()
+    assert [len(views) for views in seen] == [2, 2, 2]  # frames 1-3: keyframe 0, previous
+    for i, views in enumerate(seen, start=1):
+        np.testing.assert_array_equal(views[0], poses[0])
+        np.testing.assert_array_equal(views[1], poses[i - 1])
 
 
 def test_constant_velocity_initialisation(sequence_dir: Path, monkeypatch) -> None:

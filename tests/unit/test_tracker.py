@@ -12,6 +12,7 @@ from spec_helpers import mapper_args, spec, tracker_args
 
 from cpslam.agent.mapper import Mapper, View
 from cpslam.common.camera import Intrinsics
+from cpslam.common.field.image_terms import ReferenceImage
 from cpslam.common.field.tracking import Tracker, outlier_mask, sample_pixels
 from cpslam.common.geometry import se3_exp
 
@@ -374,3 +375,27 @@ def test_tracker_samples_per_ray_may_differ_from_mapping() -> None:
     assert (field.sampler.n_near, field.sampler.n_uniform) == (SPEC.n_near, SPEC.n_uniform)
     with pytest.raises(ValueError):
         load_config("cpu", overrides=["tracking.n_near=0"], env={})
+
+
+def test_lm_compares_with_every_reference_view(fitted: dict) -> None:
+    """Two keyframe views add both views' image terms: the pose is recovered as with one,
+    and the information at it is larger (each view's terms add to the normal equations)."""
+    intr = fitted["intr"]
+    camera = (intr.fx, intr.fy, intr.cx, intr.cy)
+    refs = [ReferenceImage.from_rgbd(view.rgb, view.depth, view.T_world_cam, camera)
+            for view in fitted["views"][:2]]
+    T_true = fitted["T_true"]
+    T_init = _off_2cm_2deg(T_true)
+    tracker = _lm(fitted, reference_weight=1.0, reference_pixels=1000)
+    one = tracker.track(fitted["map"], fitted["decoders"],
+                        torch.from_numpy(fitted["rgb"]).float() / 255,
+                        torch.from_numpy(fitted["depth"]), T_init,
+                        torch.Generator().manual_seed(0), reference=refs[0])
+    two = tracker.track(fitted["map"], fitted["decoders"],
+                        torch.from_numpy(fitted["rgb"]).float() / 255,
+                        torch.from_numpy(fitted["depth"]), T_init,
+                        torch.Generator().manual_seed(0), reference=refs)
+    for result in (one, two):
+        t, r = _errors(result.T_world_cam, T_true)
+        assert t < 0.008 and r < 0.5, (t, r)
+    assert np.trace(two.information) > 1.3 * np.trace(one.information)
