@@ -138,8 +138,9 @@ def main() -> None:
     else:
         report["open3d"], report["open3d_skipped"] = {}, "open3d is not installed"
     report["summary"] = summarise(report["runs"], report["open3d"])
-    report["summary"]["ground_truth_error"] = agreement(sequences, report["runs"],
-                                                        report["open3d"], args.frames)
+    full = {name: _full_size(sizes) for name, sizes in report["open3d"].items()}
+    report["summary"]["ground_truth_error"] = agreement(sequences, report["runs"], full,
+                                                        args.frames)
     for entry in [*report["runs"], *(v for o in report["open3d"].values() for v in o.values())]:
         entry.pop("poses", None)  # read by `agreement`; too long for the report
     print_tables(report)

@@ -287,18 +287,18 @@ def open3d_chain(seq, intr, factor: float, depth_max: float):
     return np.stack(poses), time.perf_counter() - start, failures
 
 
-def agreement(sequences: list[dict], runs: list[dict], open3d: dict, frames: int) -> dict:
+def agreement(sequences: list[dict], runs: list[dict], open3d_full: dict, frames: int) -> dict:
     """Per real sequence, the three-cornered hat (`cpslam.tools.eval.hat`) of the ground
-    truth, Open3D at full size and each of our runs without loop closure: their pairwise RMS
-    differences and each one's estimated own error (ATE and RPE over 1, 10, 50 frames, mm),
-    per run and averaged over the runs. Runs and Open3D carry their "poses" for this."""
+    truth, Open3D at full size (`open3d_full`: its entry per sequence name) and each of our
+    runs without loop closure: their pairwise RMS differences and each one's estimated own
+    error (ATE and RPE over 1, 10, 50 frames, mm), per run and averaged over the runs. Runs
+    and Open3D carry their "poses" for this."""
     from cpslam.common.datasets import open_sequence
     from cpslam.tools.eval.hat import hat_table, pairwise_differences
 
     out = {}
     for info in (s for s in sequences if s["kind"] == "real"):
-        sizes = open3d.get(info["name"], {})
-        full = sizes[max(sizes, key=lambda k: int(k.split("x")[0]))] if sizes else {}
+        full = open3d_full.get(info["name"]) or {}
         gt = open_sequence(info["path"], frames=slice(0, frames)).gt_poses()
         mine = [r for r in runs if r["sequence"] == info["name"] and "poses" in r
                 and r.get("loops", "off") == "off" and len(r["poses"]) == len(gt)]
@@ -310,7 +310,8 @@ def agreement(sequences: list[dict], runs: list[dict], open3d: dict, frames: int
                                           "cpslam": np.array(run["poses"])})
             hat = hat_table(pairs, "ground_truth", "open3d", "cpslam")
             per_run.append({"seed": run["seed"], "threads": run["threads"],
-                            "differences_mm": _mm(pairs), "own_error_mm": _mm(hat)})
+                            "capability": run["capability"], "differences_mm": _mm(pairs),
+                            "own_error_mm": _mm(hat)})
         metrics = per_run[0]["own_error_mm"]
         mean = {m: {src: round(float(np.mean([r["own_error_mm"][m][src] for r in per_run])), 2)
                     for src in metrics[m]} for m in metrics}

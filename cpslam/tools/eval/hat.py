@@ -58,7 +58,8 @@ def three_cornered_hat(d_ab: float, d_ac: float, d_bc: float) -> tuple[float, fl
     sq = (d_ab**2, d_ac**2, d_bc**2)
     variances = ((sq[0] + sq[1] - sq[2]) / 2, (sq[0] + sq[2] - sq[1]) / 2,
                  (sq[1] + sq[2] - sq[0]) / 2)
-    return tuple(math.copysign(math.sqrt(abs(v)), v) for v in variances)  # type: ignore[return-value]
+    a, b, c = (math.copysign(math.sqrt(abs(v)), v) for v in variances)
+    return a, b, c
 
 
 def hat_table(pairs: dict[str, dict[str, float]], a: str, b: str, c: str
