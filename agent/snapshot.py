@@ -87,8 +87,8 @@ def _frame_state(frame: Frame) -> dict:
 
 
 def _frame(state: dict, odo: Odometry) -> Frame:
-    rgb = state["rgb"].numpy().astype(np.uint8)
-    depth = state["depth"].numpy().astype(np.float32)
+    rgb = state["rgb"].cpu().numpy().astype(np.uint8)
+    depth = state["depth"].cpu().numpy().astype(np.float32)
     if rgb.shape != (*odo.intrinsics.shape, 3) or depth.shape != odo.intrinsics.shape:
         raise ValueError(f"odometry state: last_tracked is {rgb.shape} / {depth.shape}, "
                          f"expected {odo.intrinsics.shape} images")
