@@ -116,7 +116,7 @@ class Odometry:
         mapping_threads: int | None = None,
         all_threads: int | None = None,
         first_publish_every: int = 0,
-        previous_reference: bool = False,
+        previous_reference: float = 0.0,
     ) -> None:
         if init not in MOTION_MODELS:
             raise ValueError(f"Odometry: init must be zero_motion or constant_velocity, "
@@ -197,8 +197,6 @@ class Odometry:
         count = len(self.frames)
         generator = torch.Generator(device="cpu").manual_seed(
             self.seed * 1_000_003 + int(frame.index))
-        depth_t = torch.from_numpy(depth).to(self.device)
-        rgb_t = torch.from_numpy(rgb).to(self.device).float() / 255.0
         finished, self._unreported = self._unreported + self._recorded(self.maps.collect()), []
 
         # The server changed the map or the decoders since the last frame: fit them to each
@@ -213,7 +211,7 @@ class Odometry:
         state = self.maps.published
 
         t0 = time.perf_counter()
-        current = Frame(int(frame.index), rgb, depth, rgb_t, depth_t)
+        current = Frame.from_arrays(frame.index, rgb, depth, self.device)
         track_iters, track_loss, event = 0, 0.0, ""
         inliers = residual = float("nan")
         if count == 0:
@@ -329,27 +327,26 @@ class Odometry:
         if self.tracker.reference_weight <= 0:
             return
         rgb, depth = self.keyframes.full_rgbd(kf_id)
-        intr = self.intrinsics
         self._reference = (kf_id, ReferenceImage.from_rgbd(
             torch.from_numpy(rgb).to(self.device), torch.from_numpy(depth).to(self.device),
-            self.keyframes.get(kf_id).T_world_cam, (intr.fx, intr.fy, intr.cx, intr.cy)))
+            self.keyframes.get(kf_id).T_world_cam, self.intrinsics.pinhole))
 
     def _reference_views(self) -> list[ReferenceImage]:
         """The views a frame is compared with (tracking.reference_weight): the latest
-        keyframe and, with tracking.previous_reference, the previous frame at its tracked pose
-        if it was tracked (a sharp view one frame away, for the scatter from frame to frame)."""
+        keyframe and, with tracking.previous_reference (its weight), the previous frame at
+        its tracked pose if it was tracked (a sharp view one frame away, for the scatter from
+        frame to frame)."""
         views = []
         if self._reference is not None and self._reference[0] in self.keyframes:
             kf_id, view = self._reference
             view.T_world_ref = self.keyframes.get(kf_id).T_world_cam  # corrections
             views.append(view)
         previous = self._last_tracked
-        if self.previous_reference and previous is not None and self.frames.tracked[-1] \
+        if self.previous_reference > 0 and previous is not None and self.frames.tracked[-1] \
                 and self.tracker.reference_weight > 0:
-            intr = self.intrinsics
             views.append(ReferenceImage.from_rgbd(previous.rgb_t, previous.depth_t,
-                                                  self.frames.poses[-1],
-                                                  (intr.fx, intr.fy, intr.cx, intr.cy)))
+                                                  self.frames.poses[-1], self.intrinsics.pinhole,
+                                                  weight=self.previous_reference))
         return views
 
     def _guesses(self) -> dict[str, np.ndarray]:

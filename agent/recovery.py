@@ -61,6 +61,13 @@ class Frame:
     rgb_t: torch.Tensor
     depth_t: torch.Tensor
 
+    @classmethod
+    def from_arrays(cls, index: int, rgb: np.ndarray, depth: np.ndarray,
+                    device: torch.device | str) -> Frame:
+        """The frame of uint8 rgb [H, W, 3] and float32 depth [H, W], with its tensors."""
+        return cls(int(index), rgb, depth, torch.from_numpy(rgb).to(device).float() / 255.0,
+                   torch.from_numpy(depth).to(device))
+
 
 @dataclass
 class RecoveryOutcome:

@@ -92,6 +92,4 @@ def _frame(state: dict, odo: Odometry) -> Frame:
     if rgb.shape != (*odo.intrinsics.shape, 3) or depth.shape != odo.intrinsics.shape:
         raise ValueError(f"odometry state: last_tracked is {rgb.shape} / {depth.shape}, "
                          f"expected {odo.intrinsics.shape} images")
-    return Frame(int(state["index"]), rgb, depth,
-                 torch.from_numpy(rgb).to(odo.device).float() / 255.0,
-                 torch.from_numpy(depth).to(odo.device))
+    return Frame.from_arrays(state["index"], rgb, depth, odo.device)

@@ -71,6 +71,11 @@ class Intrinsics:
         )
 
     @property
+    def pinhole(self) -> tuple[float, float, float, float]:
+        """``(fx, fy, cx, cy)``, the camera tuple the image terms take."""
+        return self.fx, self.fy, self.cx, self.cy
+
+    @property
     def shape(self) -> tuple[int, int]:
         """Image shape ``(height, width)`` as numpy orders it."""
         return self.height, self.width

@@ -157,8 +157,8 @@ class TrackingConfig(Section):
     """lm: weight of luminance and depth residuals against the latest keyframe (0 = off)."""
     reference_pixels: PositiveInt = 2000
     """lm: pixels of the frame compared with the latest keyframe."""
-    previous_reference: bool = False
-    """lm: also compare with the previous frame's images at its tracked pose."""
+    previous_reference: float = Field(default=0.0, ge=0.0, le=1.0)
+    """lm: weight of the previous frame's view (at its tracked pose) against the keyframe's."""
     relinearise_steps: NonNegativeInt | None = None
     """lm: accepted steps that get new Jacobians; later ones reuse them (null: every step)."""
     step_stretch: float = Field(default=1.0, ge=1.0, le=4.0)

@@ -28,7 +28,8 @@ __all__ = ["ReferenceImage", "image_residuals"]
 class ReferenceImage:
     """A reference RGB-D view: gray float32 [H, W] in [0, 1], depth float32 [H, W] metres
     (0 = invalid), their x/y gradients (per pixel), pose T_world_ref [4, 4] float64 and
-    intrinsics (fx, fy, cx, cy) of the same size as the frames it is compared with."""
+    intrinsics (fx, fy, cx, cy) of the same size as the frames it is compared with; weight
+    scales its terms against the other views'."""
 
     gray: torch.Tensor
     depth: torch.Tensor
@@ -36,16 +37,18 @@ class ReferenceImage:
     grad_depth: torch.Tensor  # [2, H, W]
     T_world_ref: np.ndarray
     camera: tuple[float, float, float, float]
+    weight: float = 1.0
 
     @classmethod
     def from_rgbd(cls, rgb: torch.Tensor, depth: torch.Tensor, T_world_ref: np.ndarray,
-                  camera: tuple[float, float, float, float]) -> ReferenceImage:
+                  camera: tuple[float, float, float, float],
+                  weight: float = 1.0) -> ReferenceImage:
         """rgb float [H, W, 3] in [0, 1] (or uint8), depth float [H, W] metres."""
         rgb = rgb.float() / 255.0 if rgb.dtype == torch.uint8 else rgb.float()
         gray = _smooth(rgb.mean(-1))
         depth = depth.float()
         return cls(gray, depth, _gradient(gray), _gradient_valid(depth),
-                   np.asarray(T_world_ref, dtype=np.float64), camera)
+                   np.asarray(T_world_ref, dtype=np.float64), camera, weight)
 
 
 def image_residuals(

@@ -306,8 +306,8 @@ class _Problem:
         if self.gray_obs is not None:
             total = total + self.s.color_weight * _huber(
                 state["r_color"][sc.mask] / sc.color, self.s.huber).sum()
-        for (r_gray, _, r_depth, _, valid), ref in zip(state.get("ref", ()), sc.refs,
-                                                       strict=True):
+        for (r_gray, _, r_depth, _, valid), ref, weight in zip(
+                state.get("ref", ()), sc.refs, self._view_weights(), strict=True):
             if ref is None:
                 continue
             mask, gray_scale, depth_scale = ref
@@ -315,7 +315,7 @@ class _Problem:
                 # A pixel that left the reference view costs as a large error, so that a
                 # pose cannot lower the cost by pushing pixels out of it.
                 x = torch.where(valid, r / scale, _MISS)[mask]
-                total = total + self.s.reference_weight * _huber(x, self.s.huber).sum()
+                total = total + weight * _huber(x, self.s.huber).sum()
         return float(total)
 
     def normal_equations(
@@ -342,18 +342,23 @@ class _Problem:
             w = weight * _huber_weight(r, self.s.huber)
             H += (J * w[:, None]).T @ J
             g += (J * w[:, None]).T @ r
-        for (r_gray, J_gray, r_depth, J_depth, valid), ref in zip(state.get("ref", ()), sc.refs,
-                                                                 strict=True):
+        for (r_gray, J_gray, r_depth, J_depth, valid), ref, weight in zip(
+                state.get("ref", ()), sc.refs, self._view_weights(), strict=True):
             if ref is None:
                 continue
             mask, gray_scale, depth_scale = ref
             use = mask & valid
             for r, J, scale in ((r_gray, J_gray, gray_scale), (r_depth, J_depth, depth_scale)):
                 r, J = r[use] / scale, J[use] / scale
-                w = self.s.reference_weight * _huber_weight(r, self.s.huber)
+                w = weight * _huber_weight(r, self.s.huber)
                 H += (J * w[:, None]).T @ J
                 g += (J * w[:, None]).T @ r
         return H.cpu().numpy(), g.cpu().numpy(), jacobians
+
+    def _view_weights(self) -> list[float]:
+        """Each reference view's weight: settings.reference_weight times the view's own."""
+        views = self.reference[0] if self.reference is not None else []
+        return [self.s.reference_weight * view.weight for view in views]
 
     def _jacobian(self, state: dict, value: torch.Tensor, retain: bool) -> torch.Tensor:
         """d value_r / d xi [R, 6] for the per-ray rendered quantity value [R]."""

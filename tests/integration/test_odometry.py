@@ -154,8 +154,8 @@ def test_state_dict_round_trip_resumes_identically(sequence_dir: Path, previous:
 
 def test_previous_frame_is_a_reference_view(sequence_dir: Path, monkeypatch) -> None:
     """tracking.previous_reference: each frame is compared with the latest keyframe and with
-    the frame before it, at that frame's tracked pose."""
-    sets = (*QUICK, "tracking.previous_reference=true")
+    the frame before it, at that frame's tracked pose and at the configured weight."""
+    sets = (*QUICK, "tracking.previous_reference=0.4")
     cfg = load_config("tiny", overrides=sets, env={})
     frames, seq = _frames(sequence_dir, cfg.camera.downscale, n=4)
     intrinsics = seq.intrinsics.scaled(cfg.camera.downscale)
@@ -164,7 +164,7 @@ def test_previous_frame_is_a_reference_view(sequence_dir: Path, monkeypatch) -> 
     track = odometry.tracker.track
 
     def spy(*args, _track=track, **kwargs):
-        seen.append([view.T_world_ref.copy() for view in kwargs["reference"]])
+        seen.append([(view.T_world_ref.copy(), view.weight) for view in kwargs["reference"]])
         return _track(*args, **kwargs)
 
     monkeypatch.setattr(odometry.tracker, "track", spy)
@@ -172,9 +172,10 @@ def test_previous_frame_is_a_reference_view(sequence_dir: Path, monkeypatch) -> 
         odometry.step(frame)
     _, poses = odometry.trajectory()
     assert [len(views) for views in seen] == [2, 2, 2]  # frames 1-3: keyframe 0, previous
-    for i, views in enumerate(seen, start=1):
-        np.testing.assert_array_equal(views[0], poses[0])
-        np.testing.assert_array_equal(views[1], poses[i - 1])
+    for i, ((T_keyframe, w_keyframe), (T_previous, w_previous)) in enumerate(seen, start=1):
+        np.testing.assert_array_equal(T_keyframe, poses[0])
+        np.testing.assert_array_equal(T_previous, poses[i - 1])
+        assert (w_keyframe, w_previous) == (1.0, 0.4)
 
 
 def test_constant_velocity_initialisation(sequence_dir: Path, monkeypatch) -> None:
