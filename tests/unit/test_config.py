@@ -152,7 +152,7 @@ def test_source_order_preset_file_env_set(tmp_path: Path) -> None:
     assert cfg.tracking.iters == 60
     # Deep merge: what later sources leave alone survives from earlier ones.
     assert cfg.tracking.n_pixels == 41 and cfg.tracking.lr == 0.01
-    assert cfg.field.c_hidden == 64
+    assert cfg.field.c_hidden == 32
 
 
 def test_environment_defaults_to_os_environ(monkeypatch: pytest.MonkeyPatch) -> None:
