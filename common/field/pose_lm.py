@@ -238,6 +238,9 @@ class _Problem:
         self.render_cache: dict = {}  # what depends only on the neighbours (render_samples)
         self.reference = reference if reference is not None and settings.reference_weight > 0 \
             else None
+        # Each reference view's weight: settings.reference_weight times the view's own.
+        self.view_weights = [settings.reference_weight * view.weight
+                             for view in (self.reference[0] if self.reference else [])]
 
     def evaluate(self, T: np.ndarray, refresh: bool = False, graph: bool = True) -> dict:
         """Render at pose T; refresh: redo the neighbour search; graph: keep the autograd graph
@@ -288,16 +291,15 @@ class _Problem:
         kept = int(mask.sum())
         if kept < _MIN_PIXELS:
             return None
-        depth = max(1.4826 * float(r[mask].abs().median()), self.s.depth_floor)
+        depth = _robust_scale(r[mask], self.s.depth_floor)
         color = 1.0
         if self.gray_obs is not None:
-            color = max(1.4826 * float(state["r_color"][mask].abs().median()),
-                        self.s.color_floor)
+            color = _robust_scale(state["r_color"][mask], self.s.color_floor)
         scales = _Scales(mask, depth, color, kept, float(r[hit].abs().median()))
         for r_gray, _, r_depth, _, valid in state.get("ref", ()):
             scales.refs.append(None if int(valid.sum()) < _MIN_PIXELS else (
-                valid, max(1.4826 * float(r_gray[valid].abs().median()), self.s.color_floor),
-                max(1.4826 * float(r_depth[valid].abs().median()), self.s.depth_floor)))
+                valid, _robust_scale(r_gray[valid], self.s.color_floor),
+                _robust_scale(r_depth[valid], self.s.depth_floor)))
         return scales
 
     def cost(self, state: dict, sc: _Scales) -> float:
@@ -307,7 +309,7 @@ class _Problem:
             total = total + self.s.color_weight * _huber(
                 state["r_color"][sc.mask] / sc.color, self.s.huber).sum()
         for (r_gray, _, r_depth, _, valid), ref, weight in zip(
-                state.get("ref", ()), sc.refs, self._view_weights(), strict=True):
+                state.get("ref", ()), sc.refs, self.view_weights, strict=True):
             if ref is None:
                 continue
             mask, gray_scale, depth_scale = ref
@@ -343,7 +345,7 @@ class _Problem:
             H += (J * w[:, None]).T @ J
             g += (J * w[:, None]).T @ r
         for (r_gray, J_gray, r_depth, J_depth, valid), ref, weight in zip(
-                state.get("ref", ()), sc.refs, self._view_weights(), strict=True):
+                state.get("ref", ()), sc.refs, self.view_weights, strict=True):
             if ref is None:
                 continue
             mask, gray_scale, depth_scale = ref
@@ -354,11 +356,6 @@ class _Problem:
                 H += (J * w[:, None]).T @ J
                 g += (J * w[:, None]).T @ r
         return H.cpu().numpy(), g.cpu().numpy(), jacobians
-
-    def _view_weights(self) -> list[float]:
-        """Each reference view's weight: settings.reference_weight times the view's own."""
-        views = self.reference[0] if self.reference is not None else []
-        return [self.s.reference_weight * view.weight for view in views]
 
     def _jacobian(self, state: dict, value: torch.Tensor, retain: bool) -> torch.Tensor:
         """d value_r / d xi [R, 6] for the per-ray rendered quantity value [R]."""
@@ -371,6 +368,11 @@ class _Problem:
         g_o = zeros if g_o is None else g_o.double() @ R
         g_d = zeros if g_d is None else g_d.double() @ R
         return torch.cat((g_o, torch.linalg.cross(self.d_cam, g_d, dim=-1)), dim=-1)
+
+
+def _robust_scale(r: torch.Tensor, floor: float) -> float:
+    """1.4826 x the median absolute residual (the normal's sigma), never below floor."""
+    return max(1.4826 * float(r.abs().median()), floor)
 
 
 def _huber(x: torch.Tensor, k: float) -> torch.Tensor:

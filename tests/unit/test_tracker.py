@@ -389,19 +389,16 @@ def test_lm_compares_with_every_reference_view(fitted: dict) -> None:
     T_true = fitted["T_true"]
     T_init = _off_2cm_2deg(T_true)
     tracker = _lm(fitted, reference_weight=1.0, reference_pixels=1000)
-    one = tracker.track(fitted["map"], fitted["decoders"],
-                        torch.from_numpy(fitted["rgb"]).float() / 255,
-                        torch.from_numpy(fitted["depth"]), T_init,
-                        torch.Generator().manual_seed(0), reference=refs[0])
-    two = tracker.track(fitted["map"], fitted["decoders"],
-                        torch.from_numpy(fitted["rgb"]).float() / 255,
-                        torch.from_numpy(fitted["depth"]), T_init,
-                        torch.Generator().manual_seed(0), reference=refs)
+
+    def track(reference):
+        return tracker.track(fitted["map"], fitted["decoders"],
+                             torch.from_numpy(fitted["rgb"]).float() / 255,
+                             torch.from_numpy(fitted["depth"]), T_init,
+                             torch.Generator().manual_seed(0), reference=reference)
+
+    one, two = track(refs[0]), track(refs)
     refs[1].weight = 0.25  # a view's weight scales its share of the information
-    light = tracker.track(fitted["map"], fitted["decoders"],
-                          torch.from_numpy(fitted["rgb"]).float() / 255,
-                          torch.from_numpy(fitted["depth"]), T_init,
-                          torch.Generator().manual_seed(0), reference=refs)
+    light = track(refs)
     for result in (one, two, light):
         t, r = _errors(result.T_world_cam, T_true)
         assert t < 0.003 and r < 0.1, (t, r)
