@@ -382,8 +382,7 @@ def test_lm_compares_with_every_reference_view(fitted: dict) -> None:
     and the information at it is larger (each view's terms add to the normal equations, at
     the view's weight). Over pixel-draw seeds 0-3 with one and two threads (AVX2): 0.08-0.34
     mm and under 0.01 degrees from the truth, information trace 1.98-2.00 times one view's."""
-    intr = fitted["intr"]
-    camera = (intr.fx, intr.fy, intr.cx, intr.cy)
+    camera = fitted["intr"].pinhole
     refs = [ReferenceImage.from_rgbd(view.rgb, view.depth, view.T_world_cam, camera)
             for view in fitted["views"][:2]]
     T_true = fitted["T_true"]
