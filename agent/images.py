@@ -130,7 +130,7 @@ def rescale_reply(image: KeyframeImage, request: KeyframeImageRequest) -> Keyfra
     if image.rgb is None or image.depth is None:
         raise ValueError(f"keyframe image {image.agent_id}/{image.kf_id}: a stored reply needs "
                          "both colour and depth")
-    intr = Intrinsics(image.fx, image.fy, image.cx, image.cy, image.width, image.height)
+    intr = Intrinsics.of(image)
     step = 1000.0 / image.depth_scale if image.depth_encoding == "inverse" else 0.0
     return image_reply(request, image.rgb, image.depth_metres(), intr, image.rgb_codec,
                        image.jpeg_quality, step, image.depth_codec)

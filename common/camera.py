@@ -63,6 +63,12 @@ class Intrinsics:
                 raise ValueError(f"Intrinsics.{name}: expected a positive integer, got {value!r}")
             object.__setattr__(self, name, int(float(value)))
 
+    @classmethod
+    def of(cls, camera: Any) -> Intrinsics:
+        """The intrinsics of anything that carries ``fx, fy, cx, cy, width, height`` (a wire
+        image message, another camera), checked as the constructor checks them."""
+        return cls(camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height)
+
     @property
     def K(self) -> np.ndarray:
         """The 3x3 float64 camera matrix."""

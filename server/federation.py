@@ -342,7 +342,7 @@ class Federator:
             img = self.image(agent, kf)
             if img is None or img.depth is None or img.rgb is None:
                 continue
-            intr = Intrinsics(img.fx, img.fy, img.cx, img.cy, img.width, img.height)
+            intr = Intrinsics.of(img)
             views.append(View(img.rgb, img.depth_metres(), self.kf_poses(agent)[kf], intr))
         return views
 

@@ -50,7 +50,7 @@ from cpslam.common.field import Decoders, FieldSpec, NeuralPointMap
 from cpslam.common.field.tracking import Tracker
 from cpslam.common.geometry import compose, invert
 from cpslam.common.registration import Registration, RegistrationParams, verify
-from cpslam.server.loops.registration import keyframe_intrinsics, keyframe_rgbd
+from cpslam.server.loops.registration import keyframe_rgbd
 
 if TYPE_CHECKING:
     from collections.abc import Callable
@@ -174,7 +174,7 @@ class PoseRefiner:
         keyframe b sits at ``T_B_b``), then keep the better of coarse and refined."""
         t0 = time.perf_counter()
         T_a_b = np.asarray(T_a_b, np.float64)
-        intr_a, intr_b = keyframe_intrinsics(img_a), keyframe_intrinsics(img_b)
+        intr_a, intr_b = Intrinsics.of(img_a), Intrinsics.of(img_b)
         rgb_a, depth_a = keyframe_rgbd(img_a)
         depth_t = torch.from_numpy(depth_a).to(point_map.device)
         rgb_t = torch.from_numpy(rgb_a).to(point_map.device).float() / 255.0

@@ -20,7 +20,7 @@ if TYPE_CHECKING:
     from cpslam.common.config.collab import LoopConfig
     from cpslam.protocol import KeyframeImage
 
-__all__ = ["coarse_register", "keyframe_intrinsics", "keyframe_rgbd"]
+__all__ = ["coarse_register", "keyframe_rgbd"]
 
 
 def coarse_register(loop: LoopConfig, seed: int) -> Callable[[KeyframeImage, KeyframeImage], Any]:
@@ -33,12 +33,12 @@ def coarse_register(loop: LoopConfig, seed: int) -> Callable[[KeyframeImage, Key
         if loop.coarse_method == "none":
             # The paper: no coarse stage, the loop keyframe starts at the other keyframe's
             # pose (identity relative pose) and only the rendering refinement moves it.
-            result = verify(keyframe_rgbd(src), keyframe_rgbd(dst), keyframe_intrinsics(src),
-                            np.eye(4), params, dst_intrinsics=keyframe_intrinsics(dst))
+            result = verify(keyframe_rgbd(src), keyframe_rgbd(dst), Intrinsics.of(src),
+                            np.eye(4), params, dst_intrinsics=Intrinsics.of(dst))
             result.method = "identity"
             return result
-        return register_rgbd(keyframe_rgbd(src), keyframe_rgbd(dst), keyframe_intrinsics(src),
-                             params, dst_intrinsics=keyframe_intrinsics(dst))
+        return register_rgbd(keyframe_rgbd(src), keyframe_rgbd(dst), Intrinsics.of(src),
+                             params, dst_intrinsics=Intrinsics.of(dst))
 
     return register
 
@@ -50,8 +50,3 @@ def keyframe_rgbd(img: KeyframeImage) -> tuple[np.ndarray, np.ndarray]:
         raise ValueError(f"keyframe image {img.agent_id}/{img.kf_id} has no depth")
     rgb = img.rgb if img.rgb is not None else np.zeros((*depth.shape, 3), np.uint8)
     return rgb, depth
-
-
-def keyframe_intrinsics(img: KeyframeImage) -> Intrinsics:
-    """The camera of a keyframe image (its processing resolution)."""
-    return Intrinsics(img.fx, img.fy, img.cx, img.cy, img.width, img.height)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import cv2
 import numpy as np
 import pytest
@@ -56,6 +58,13 @@ def test_coercion_and_dict_round_trips() -> None:
     with pytest.raises(ValueError, match="from_K"):
         Intrinsics.from_K(np.ones((3, 3)), 640, 480)
     assert INTR.shape == (480, 640)
+
+
+def test_of_reads_any_camera_carrier_and_checks_it() -> None:
+    message = SimpleNamespace(**INTR.to_dict(), kf_id=3, rgb=None)
+    assert Intrinsics.of(message) == INTR
+    with pytest.raises(ValueError, match="Intrinsics.fy"):
+        Intrinsics.of(SimpleNamespace(**{**INTR.to_dict(), "fy": 0.0}))
 
 
 def test_backproject_project_identity() -> None:

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from cpslam.tools.view.sink import Intrinsics, Scene, open_recording
+from cpslam.tools.view.sink import Scene, open_recording
 
 logger = logging.getLogger(__name__)
 
@@ -69,10 +69,8 @@ class AgentRecorder:
         self.scene.camera(self.agent_id, T_world_cam)
         self._xyz.append(T_world_cam[:3, 3].copy())
         if result.is_keyframe and result.kf_id is not None:
-            k = odometry.intrinsics  # of the processed frames
             self.scene.keyframe(self.agent_id, 0, result.kf_id, T_world_cam,
-                                Intrinsics(k.fx, k.fy, k.cx, k.cy, k.width, k.height),
-                                frame.rgb, static=False)
+                                odometry.intrinsics, frame.rgb, static=False)
         self.scene.scalar(f"agents/{self.agent_id}/track_loss", result.track_loss)
         now = self._clock()
         if self._last_full is None or now - self._last_full >= self.every_s:

@@ -21,7 +21,8 @@ from typing import Any
 
 import numpy as np
 
-from cpslam.tools.view.sink import Intrinsics, Scene
+from cpslam.common.camera import Intrinsics
+from cpslam.tools.view.sink import Scene
 
 logger = logging.getLogger(__name__)
 
@@ -230,7 +231,7 @@ class Observer:
                 self._log_loops(summary.get("loops", {}).get("recent", []))
             for agent_id, img in images:
                 a = self.agents[agent_id]
-                a.intr = Intrinsics(img.fx, img.fy, img.cx, img.cy, img.width, img.height)
+                a.intr = Intrinsics.of(img)
                 if img.kf_id in a.kf_poses:
                     self.scene.keyframe(agent_id, a.index, img.kf_id, a.kf_poses[img.kf_id],
                                         a.intr, img.rgb, static=False)

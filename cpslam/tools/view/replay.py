@@ -19,7 +19,8 @@ from typing import Any
 
 import numpy as np
 
-from cpslam.tools.view.sink import EDGE, Intrinsics, Scene, agent_colour
+from cpslam.common.camera import Intrinsics
+from cpslam.tools.view.sink import EDGE, Scene, agent_colour
 
 logger = logging.getLogger(__name__)
 

@@ -9,17 +9,17 @@ Camera frusta use OpenCV axes (x right, y down, z forward), as every pose in cps
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from cpslam.common.camera import Intrinsics
 from cpslam.tools.view import import_rerun
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["ACCEPTED", "REJECTED", "Intrinsics", "Scene", "agent_colour", "open_recording"]
+__all__ = ["ACCEPTED", "REJECTED", "Scene", "agent_colour", "open_recording"]
 
 APP_ID = "cpslam"
 # Distinct colours for up to eight agents (then they repeat), readable on the dark viewer.
@@ -37,22 +37,6 @@ THUMBNAIL_WIDTH = 160
 def agent_colour(index: int) -> np.ndarray:
     """RGB uint8 [3] of the agent with this index (order of first appearance)."""
     return AGENT_COLOURS[int(index) % len(AGENT_COLOURS)]
-
-
-@dataclass(frozen=True)
-class Intrinsics:
-    """Pinhole of a keyframe's image, pixels."""
-
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    width: int
-    height: int
-
-    def scaled(self, factor: float) -> Intrinsics:
-        return Intrinsics(self.fx * factor, self.fy * factor, self.cx * factor, self.cy * factor,
-                          max(1, round(self.width * factor)), max(1, round(self.height * factor)))
 
 
 def open_recording(name: str, save: Path | None = None, web: bool = False,
