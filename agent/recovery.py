@@ -237,19 +237,33 @@ def rgbd_odometry(previous: Frame, frame: Frame, intrinsics: Intrinsics) -> np.n
         import open3d as o3d
     except ImportError:
         return None
-    pinhole = o3d.camera.PinholeCameraIntrinsic(intrinsics.width, intrinsics.height,
-                                                intrinsics.fx, intrinsics.fy,
-                                                intrinsics.cx, intrinsics.cy)
-    images = [o3d.geometry.RGBDImage.create_from_color_and_depth(
-        o3d.geometry.Image(np.ascontiguousarray(f.rgb)),
-        o3d.geometry.Image(np.ascontiguousarray(f.depth)), depth_scale=1.0,
-        depth_trunc=float(max(f.depth.max(), 1e-3)) + 1.0, convert_rgb_to_intensity=True)
-        for f in (frame, previous)]
+    images = [open3d_rgbd(f.rgb, f.depth, float(max(f.depth.max(), 1e-3)) + 1.0)
+              for f in (frame, previous)]
     ok, T_prev_cur, _ = o3d.pipelines.odometry.compute_rgbd_odometry(
-        images[0], images[1], pinhole, np.eye(4),
+        images[0], images[1], open3d_pinhole(intrinsics), np.eye(4),
         o3d.pipelines.odometry.RGBDOdometryJacobianFromHybridTerm(),
         o3d.pipelines.odometry.OdometryOption())
     return np.asarray(T_prev_cur, dtype=np.float64) if ok else None
+
+
+def open3d_pinhole(intrinsics: Intrinsics):
+    """The intrinsics as Open3D's `PinholeCameraIntrinsic` (open3d must be importable)."""
+    import open3d as o3d
+
+    return o3d.camera.PinholeCameraIntrinsic(intrinsics.width, intrinsics.height,
+                                             intrinsics.fx, intrinsics.fy,
+                                             intrinsics.cx, intrinsics.cy)
+
+
+def open3d_rgbd(rgb: np.ndarray, depth: np.ndarray, depth_trunc: float):
+    """rgb [H, W, 3] uint8 and depth [H, W] metres as Open3D's `RGBDImage`, with intensity
+    for the odometry's photometric term (open3d must be importable)."""
+    import open3d as o3d
+
+    return o3d.geometry.RGBDImage.create_from_color_and_depth(
+        o3d.geometry.Image(np.ascontiguousarray(rgb)),
+        o3d.geometry.Image(np.ascontiguousarray(depth)), depth_scale=1.0,
+        depth_trunc=depth_trunc, convert_rgb_to_intensity=True)
 
 
 def _keyframe_guesses(frame: Frame, keyframes: KeyframeStore, intrinsics: Intrinsics,

@@ -258,10 +258,10 @@ def open3d_odometry(seq_info: dict, frames: int) -> dict:
 def open3d_chain(seq, intr, factor: float, depth_max: float):
     import open3d as o3d
 
+    from cpslam.agent.recovery import open3d_pinhole, open3d_rgbd
     from cpslam.common.camera import resize_rgbd
 
-    pinhole = o3d.camera.PinholeCameraIntrinsic(intr.width, intr.height, intr.fx, intr.fy,
-                                                intr.cx, intr.cy)
+    pinhole = open3d_pinhole(intr)
     option = o3d.pipelines.odometry.OdometryOption()
     option.depth_max = depth_max
     jacobian = o3d.pipelines.odometry.RGBDOdometryJacobianFromHybridTerm()
@@ -272,10 +272,7 @@ def open3d_chain(seq, intr, factor: float, depth_max: float):
         rgb, depth = frame.rgb, frame.depth
         if factor != 1.0:
             rgb, depth = resize_rgbd(rgb, depth, factor)
-        image = o3d.geometry.RGBDImage.create_from_color_and_depth(
-            o3d.geometry.Image(np.ascontiguousarray(rgb)),
-            o3d.geometry.Image(np.ascontiguousarray(depth)),
-            depth_scale=1.0, depth_trunc=depth_max, convert_rgb_to_intensity=True)
+        image = open3d_rgbd(rgb, depth, depth_max)
         if previous is not None:
             ok, T_prev_cur, _ = o3d.pipelines.odometry.compute_rgbd_odometry(
                 image, previous, pinhole, np.eye(4), jacobian, option)
