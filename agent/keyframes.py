@@ -295,6 +295,5 @@ def _overlap_points(depth: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
     z = depth[vv, uu].astype(np.float64)
     ok = np.isfinite(z) & (z > 0)
     vv, uu, z = vv[ok], uu[ok], z[ok]
-    xyz = np.stack(((uu - intrinsics.cx) / intrinsics.fx * z,
-                    (vv - intrinsics.cy) / intrinsics.fy * z, z), axis=-1)
+    xyz = intrinsics.pixel_rays(uu, vv) * z[:, None]
     return xyz.astype(np.float32)

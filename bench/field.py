@@ -163,7 +163,7 @@ def _surface_points(n: int, gen: np.random.Generator) -> np.ndarray:
 def _box_depth(intr: Intrinsics) -> np.ndarray:
     """z-depth of the box room's walls seen from the origin (looking along +z)."""
     v, u = np.mgrid[0 : intr.height, 0 : intr.width]
-    d = np.stack(((u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, np.ones(u.shape)), -1)
+    d = intr.pixel_rays(u, v).reshape(*u.shape, 3)
     with np.errstate(divide="ignore"):
         t = np.where(d > 0, ROOM_HI / d, np.where(d < 0, ROOM_LO / d, np.inf))
     return t.min(-1).astype(np.float32)

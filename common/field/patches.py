@@ -38,8 +38,7 @@ def patch_points(
     if max_depth is not None:
         ok &= z <= max_depth
     v, u, z = v[ok], u[ok], z[ok]
-    xyz_cam = np.stack(((u - intrinsics.cx) / intrinsics.fx * z,
-                        (v - intrinsics.cy) / intrinsics.fy * z, z), axis=-1)
+    xyz_cam = intrinsics.pixel_rays(u, v) * z[:, None]
     T = np.asarray(torch.as_tensor(T_world_cam).detach().cpu(), dtype=np.float64)
     xyz_world = xyz_cam @ T[:3, :3].T + T[:3, 3]
     device = cnn.conv.weight.device

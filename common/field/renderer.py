@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING
 
 import torch
 
+from cpslam.common.camera import pixel_rays_torch
 from cpslam.common.field.decoders import Decoders
 from cpslam.common.field.points import NeuralPointMap
 from cpslam.common.field.sampler import RaySampler
@@ -141,10 +142,7 @@ def camera_rays(
     T = T_world_cam.to(dtype=torch.float32)
     u = u.to(device=T.device, dtype=torch.float32)
     v = v.to(device=T.device, dtype=torch.float32)
-    dirs = torch.stack(
-        ((u - intrinsics.cx) / intrinsics.fx, (v - intrinsics.cy) / intrinsics.fy,
-         torch.ones_like(u)), dim=-1,
-    )  # [R, 3] camera frame
+    dirs = pixel_rays_torch(intrinsics, u, v)  # [R, 3] camera frame
     rays_d = dirs @ T[:3, :3].T
     rays_o = T[:3, 3].expand_as(rays_d)
     return rays_o, rays_d

@@ -47,6 +47,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
+from cpslam.common.camera import pixel_rays_torch
 from cpslam.common.field.decoders import Decoders
 from cpslam.common.field.image_terms import ReferenceImage
 from cpslam.common.field.points import NeuralPointMap
@@ -316,8 +317,7 @@ class Tracker:
         intr = self.intrinsics
         u, v = sample_pixels(depth, self.reference_pixels, generator, stratified=True)
         d = depth[v, u].double()
-        xyz = torch.stack(((u.double() - intr.cx) / intr.fx * d,
-                           (v.double() - intr.cy) / intr.fy * d, d), dim=-1)
+        xyz = pixel_rays_torch(intr, u.double(), v.double()) * d[:, None]
         return refs, xyz.to(depth.device), rgb[v, u].double().mean(-1)
 
     @torch.no_grad()
