@@ -91,6 +91,9 @@ class Mapper:
         color_weight: weight of the colour L1 term.
         add_points_depth_err: None = add where no point is within radius; a number = add where
             the rendered depth is off by more than this (m).
+        pose_average: the refined pose is T_world_cam @ exp(mean xi) over this last share of
+            the steps (0 = the last step's xi): the small, fresh pixel batches make single
+            iterates noisy.
     """
 
     def __init__(
@@ -103,6 +106,7 @@ class Mapper:
         feature_lr_decay_steps: int,
         color_weight: float,
         add_points_depth_err: float | None,
+        pose_average: float = 0.0,
     ) -> None:
         self.spec = spec
         self.sampler = spec.sampler()
@@ -112,6 +116,7 @@ class Mapper:
         self.color_weight = color_weight
         self.patch_size = spec.patch_size
         self.add_points_depth_err = add_points_depth_err
+        self.pose_average = pose_average
         self.k, self.radius = spec.k_neighbors, spec.radius
         self.backend, self.chunk = spec.neighbour_backend, spec.chunk_rays
 
@@ -187,8 +192,9 @@ class Mapper:
 
         pose_lr > 0 also optimises the pose of views[0] (the current frame) as
         T_world_cam @ exp(xi), xi an se(3) increment in its camera frame, by Adam at this
-        rate; the map points stay where they are while it moves, and the refined pose is
-        returned in the result (the view itself is left unchanged).
+        rate; the map points stay where they are while it moves, and the refined pose (xi
+        averaged over the last `pose_average` share of the steps) is returned in the result
+        (the view itself is left unchanged).
 
         lr_scale multiplies both learning rates of the map (decoders and features) for this
         call.
@@ -215,6 +221,8 @@ class Mapper:
         optimiser = torch.optim.Adam(groups)
         share = _split(n_pixels, len(views))
         first = last = math.nan
+        average_from = min(iters - 1, int(iters * (1.0 - self.pose_average)))
+        xi_sum = None
         for it in range(iters):
             decay = self.feature_lr_decay ** (it / self.feature_lr_decay_steps)
             optimiser.param_groups[1]["lr"] = lr_scale * self.lr_features * decay
@@ -231,6 +239,8 @@ class Mapper:
             loss.backward()
             optimiser.step()
             last = float(loss.detach())
+            if refine and it >= average_from:
+                xi_sum = xi.detach().clone() if xi_sum is None else xi_sum + xi.detach()
             if it == 0:
                 first = last
             if checkpoint is not None and checkpoint_every > 0 and it + 1 < iters \
@@ -241,7 +251,7 @@ class Mapper:
         T_refined = None
         if refine:
             with torch.no_grad():
-                T_refined = (T0 @ torch_se3_exp(xi)).cpu().numpy()
+                T_refined = (T0 @ torch_se3_exp(xi_sum / (iters - average_from))).cpu().numpy()
         seconds = time.perf_counter() - start
         logger.debug("mapping: %d steps over %d views, %d active points, loss %.4f -> %.4f "
                      "(%.2f s)", iters, len(views), len(rows), first, last, seconds)

@@ -43,4 +43,5 @@ def mapper_args_from_config(mapping_cfg: MappingConfig) -> dict[str, Any]:
         lr_decoders=mp.lr_decoders, lr_features=mp.lr_features,
         feature_lr_decay=mp.feature_lr_decay, feature_lr_decay_steps=mp.feature_lr_decay_steps,
         color_weight=mp.color_weight, add_points_depth_err=mp.add_points_depth_err,
+        pose_average=mp.pose_average,
     )

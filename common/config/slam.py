@@ -252,6 +252,8 @@ class MappingConfig(Section):
     """Add points where rendered depth errs by more than this (m); null = no point within radius."""
     pose_lr: NonNegativeFloat = 0.0
     """Adam rate refining a non-keyframe mapping frame's pose with the map (0 = keep tracked)."""
+    pose_average: float = Field(default=0.5, ge=0.0, lt=1.0)
+    """Refined pose: mean of the pose increments over this last share of steps (0 = last step's)."""
     max_pending_keyframes: PositiveInt = 2
     """Concurrent schedule: keyframes waiting for the mapping thread before tracking waits too."""
     first_publish_every: NonNegativeInt = 0
