@@ -123,12 +123,14 @@ def test_mapping_with_pose_lr_refines_the_current_frame(fitted: dict) -> None:
     """Joint optimisation (mapping.pose_lr): a 1 cm / 1 degree error in the current frame's
     pose shrinks while the map is fitted, and the map points stay where they are.
 
-    Over six pixel-draw seeds the error left after 100 steps was 12-33 % of the initial one
-    in translation and 2-17 % in rotation; the bound of 60 % leaves room for other CPUs."""
+    With the refined pose the mean over the last half of the steps (mapping.pose_average
+    0.5), over six pixel-draw seeds the error left after 100 steps was 24-48 % of the initial
+    one in translation and 10-18 % in rotation (the last step's alone: 16-44 % and 6-19 %; the
+    mean lags while the pose still converges); the bound of 70 % leaves room for other CPUs."""
     T_true = fitted["T_true"]
     axis = np.array([1.0, -2.0, 0.5]) / np.linalg.norm([1.0, -2.0, 0.5])
     T_off = T_true @ se3_exp(np.concatenate(([0.006, 0.005, -0.006], np.radians(1.0) * axis)))
-    mapper = Mapper(SPEC, **mapper_args())
+    mapper = Mapper(SPEC, **mapper_args(pose_average=0.5))
     view = View(torch.from_numpy(fitted["rgb"]).float() / 255,
                 torch.from_numpy(fitted["depth"]), T_off, fitted["intr"])
     results = {}
@@ -142,8 +144,28 @@ def test_mapping_with_pose_lr_refines_the_current_frame(fitted: dict) -> None:
     assert results[0.0].T_world_cam is None  # the pose was not optimised
     t0, r0 = _errors(T_off, T_true)
     t1, r1 = _errors(results[0.002].T_world_cam, T_true)
-    assert t1 < 0.6 * t0 and r1 < 0.6 * r0, (t0, r0, t1, r1)
+    assert t1 < 0.7 * t0 and r1 < 0.7 * r0, (t0, r0, t1, r1)
     assert np.array_equal(view.T_world_cam, T_off)  # the view itself is left alone
+
+
+def test_mapping_pose_average_changes_only_the_reported_pose(fitted: dict) -> None:
+    """mapping.pose_average: the refined pose is the mean of the increments over the last
+    steps, which leaves the optimisation itself alone: with the same pixel draws the map
+    ends bit for bit the same, and only the returned pose differs."""
+    T_off = fitted["T_true"] @ se3_exp(np.array([0.006, 0.005, -0.006, 0.01, -0.01, 0.0]))
+    view = View(torch.from_numpy(fitted["rgb"]).float() / 255,
+                torch.from_numpy(fitted["depth"]), T_off, fitted["intr"])
+    out = {}
+    for average in (0.0, 0.5):
+        point_map, decoders = copy.deepcopy(fitted["map"]), copy.deepcopy(fitted["decoders"])
+        result = Mapper(SPEC, **mapper_args(pose_average=average)).optimise(
+            point_map, decoders, [view, *fitted["views"]], 40, 300,
+            torch.Generator().manual_seed(3), pose_lr=0.002)
+        out[average] = (result, point_map.features.clone(), decoders.state_dict())
+    (last, features_last, decoders_last), (mean, features_mean, decoders_mean) = out.values()
+    assert torch.equal(features_last, features_mean) and last.loss_last == mean.loss_last
+    assert all(torch.equal(decoders_last[k], decoders_mean[k]) for k in decoders_last)
+    assert not np.array_equal(last.T_world_cam, mean.T_world_cam)
 
 
 def test_keep_best_returns_the_lowest_loss_pose(fitted: dict) -> None:
