@@ -92,8 +92,8 @@ class Mapper:
         add_points_depth_err: None = add where no point is within radius; a number = add where
             the rendered depth is off by more than this (m).
         pose_average: the refined pose is T_world_cam @ exp(mean xi) over this last share of
-            the steps (0 = the last step's xi): the small, fresh pixel batches make single
-            iterates noisy.
+            the steps (0 = the last step's xi); the last step's pose put mapping frames
+            further off than the frames around them (docs/performance.md).
     """
 
     def __init__(
@@ -106,7 +106,7 @@ class Mapper:
         feature_lr_decay_steps: int,
         color_weight: float,
         add_points_depth_err: float | None,
-        pose_average: float = 0.0,
+        pose_average: float,
     ) -> None:
         self.spec = spec
         self.sampler = spec.sampler()
