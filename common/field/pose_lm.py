@@ -46,6 +46,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from cpslam.common.camera import Intrinsics, pixel_rays_torch
 from cpslam.common.field.decoders import Decoders
 from cpslam.common.field.image_terms import ReferenceImage, image_residuals
 from cpslam.common.field.points import NeuralPointMap
@@ -112,7 +113,7 @@ def solve_pose_lm(
     t: torch.Tensor,
     depth_obs: torch.Tensor,
     gray_obs: torch.Tensor | None,
-    fx: float, fy: float, cx: float, cy: float,
+    intrinsics: Intrinsics,
     T_init: np.ndarray,
     settings: LMSettings,
     reference: tuple[list[ReferenceImage], torch.Tensor, torch.Tensor] | None = None,
@@ -123,7 +124,7 @@ def solve_pose_lm(
     frame's points xyz_cam [P, 3] and their luminance [P]) adds the image terms of
     `cpslam.common.field.image_terms` against each view, weighted by
     settings.reference_weight."""
-    problem = _Problem(point_map, decoders, u, v, t, depth_obs, gray_obs, (fx, fy, cx, cy),
+    problem = _Problem(point_map, decoders, u, v, t, depth_obs, gray_obs, intrinsics,
                        settings, reference)
     T_init = np.asarray(T_init, dtype=np.float64)
     T_prior_inv = invert(T_init)
@@ -217,19 +218,17 @@ class _Problem:
 
     def __init__(self, point_map: NeuralPointMap, decoders: Decoders, u: torch.Tensor,
                  v: torch.Tensor, t: torch.Tensor, depth_obs: torch.Tensor,
-                 gray_obs: torch.Tensor | None, camera: tuple[float, float, float, float],
+                 gray_obs: torch.Tensor | None, intrinsics: Intrinsics,
                  settings: LMSettings,
                  reference: tuple[list[ReferenceImage], torch.Tensor, torch.Tensor] | None
                  ) -> None:
-        fx, fy, cx, cy = camera
         device = point_map.device
         self.point_map, self.decoders, self.s = point_map, decoders, settings
         self.t = t.to(device)
         self.depth_obs = depth_obs.to(device=device, dtype=torch.float64)
         self.gray_obs = None if gray_obs is None else gray_obs.to(device=device,
                                                                   dtype=torch.float64)
-        u64, v64 = u.to(device, torch.float64), v.to(device, torch.float64)
-        self.d_cam = torch.stack(((u64 - cx) / fx, (v64 - cy) / fy, torch.ones_like(u64)), -1)
+        self.d_cam = pixel_rays_torch(intrinsics, u.to(device, torch.float64), v.to(device))
         self.features = point_map.features.detach()
         self.index = point_map.neighbour_index(settings.backend)
         self.t_far = float(self.t.max())

@@ -380,12 +380,11 @@ class Tracker:
                 # Depth first: its basin is wide (a rendered surface moves smoothly with the
                 # pose), while luminance is periodic on striped or tiled texture and, from a
                 # guess a degree off, pulls towards the wrong stripe.
-                first = solve_pose_lm(point_map, decoders, u, v, t, depth_obs, None, intr.fx,
-                                      intr.fy, intr.cx, intr.cy, T_init,
-                                      replace(settings, iters=depth_iters))
+                first = solve_pose_lm(point_map, decoders, u, v, t, depth_obs, None, intr,
+                                      T_init, replace(settings, iters=depth_iters))
                 T_start, depth_solves = first.T_world_cam, first.iters
-            sol = solve_pose_lm(point_map, decoders, u, v, t, depth_obs, gray, intr.fx, intr.fy,
-                                intr.cx, intr.cy, T_start, settings, reference)
+            sol = solve_pose_lm(point_map, decoders, u, v, t, depth_obs, gray, intr, T_start,
+                                settings, reference)
         finally:
             decoders.requires_grad_(True)
         loss = sol.costs[-1] if sol.costs else math.nan

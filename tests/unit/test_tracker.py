@@ -327,7 +327,7 @@ def test_lm_depth_stage_has_its_own_cap(fitted: dict, monkeypatch) -> None:
     solve = tracking.solve_pose_lm
 
     def spy(*args, **kwargs):
-        caps.append(args[12].iters)  # the LMSettings
+        caps.append(args[9].iters)  # the LMSettings
         return solve(*args, **kwargs)
 
     monkeypatch.setattr(tracking, "solve_pose_lm", spy)
