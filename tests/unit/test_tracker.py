@@ -4,6 +4,7 @@ outlier mask; pixel sampling."""
 from __future__ import annotations
 
 import copy
+import inspect
 
 import numpy as np
 import pytest
@@ -327,7 +328,7 @@ def test_lm_depth_stage_has_its_own_cap(fitted: dict, monkeypatch) -> None:
     solve = tracking.solve_pose_lm
 
     def spy(*args, **kwargs):
-        caps.append(args[9].iters)  # the LMSettings
+        caps.append(inspect.signature(solve).bind(*args, **kwargs).arguments["settings"].iters)
         return solve(*args, **kwargs)
 
     monkeypatch.setattr(tracking, "solve_pose_lm", spy)
